@@ -1,0 +1,132 @@
+"""Per-env episode accumulators, stacked over metrics and grouped by reduction.
+
+Rows are ordered by reduction (`ORDER`), so each reduction works on one contiguous
+block `[rows, num_envs]`. The step on which an episode ends is folded in before the
+episode value is read; then that env's accumulators reset.
+"""
+
+import dataclasses
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+ORDER = ("mean", "std", "sum", "max", "min", "last")
+
+
+class EpisodeState(NamedTuple):
+    """Running episodes of every env. Row blocks follow `ORDER`."""
+
+    steps: jax.Array  # [M, E] int32: steps folded into the running episode (finite ones)
+    mean: jax.Array  # [M_mean + M_std, E] float: Welford mean
+    m2: jax.Array  # [M_std, E] float: Welford sum of squared deviations
+    sum: jax.Array  # [M_sum, E] float, Kahan-compensated by sum_c
+    sum_c: jax.Array  # [M_sum, E] float
+    max: jax.Array  # [M_max, E] float, -inf at episode start
+    min: jax.Array  # [M_min, E] float, +inf at episode start
+    last: jax.Array  # [M_last, E] float, NaN at episode start
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodePlan:
+    """How many rows each reduction has (rows are sorted by `ORDER`)."""
+
+    sizes: tuple[int, ...]  # per reduction in ORDER
+    dtype: jnp.dtype
+
+    @classmethod
+    def build(cls, reductions: Sequence[str], dtype) -> "EpisodePlan":
+        return cls(tuple(sum(r == k for r in reductions) for k in ORDER), jnp.dtype(dtype))
+
+    @property
+    def rows(self) -> int:
+        return sum(self.sizes)
+
+    def block(self, name: str) -> slice:
+        i = ORDER.index(name)
+        start = sum(self.sizes[:i])
+        return slice(start, start + self.sizes[i])
+
+
+def init(plan: EpisodePlan, num_envs: int) -> EpisodeState:
+    dt = plan.dtype
+    n = dict(zip(ORDER, plan.sizes))
+
+    def full(rows: int, v: float) -> jax.Array:
+        return jnp.full((rows, num_envs), v, dt)
+
+    return EpisodeState(
+        steps=jnp.zeros((plan.rows, num_envs), jnp.int32),
+        mean=full(n["mean"] + n["std"], 0.0),
+        m2=full(n["std"], 0.0),
+        sum=full(n["sum"], 0.0),
+        sum_c=full(n["sum"], 0.0),
+        max=full(n["max"], -jnp.inf),
+        min=full(n["min"], jnp.inf),
+        last=full(n["last"], jnp.nan),
+    )
+
+
+def step(
+    plan: EpisodePlan, ep: EpisodeState, x: jax.Array, fold: jax.Array, done: jax.Array
+) -> tuple[EpisodeState, jax.Array, jax.Array]:
+    """Folds one step `x[M, E]` (where `fold[M, E]`) into the running episodes.
+
+    Returns the new state, the episode values `[M, E]` as of this step (meaningful where
+    `done`), and whether each env's episode has any folded step (`[M, E]` bool).
+    """
+    steps = ep.steps + fold.astype(jnp.int32)
+    b = plan.block
+    welford = slice(b("mean").start, b("std").stop)
+    xw, fw = x[welford], fold[welford]
+    nw = jnp.maximum(steps[welford], 1).astype(plan.dtype)
+    delta = jnp.where(fw, xw - ep.mean, 0)
+    mean = ep.mean + delta / nw
+    std_in_w = slice(b("std").start - welford.start, b("std").stop - welford.start)
+    m2 = ep.m2 + jnp.where(fw[std_in_w], delta[std_in_w] * (xw - mean)[std_in_w], 0)
+
+    xs, fs = x[b("sum")], fold[b("sum")]
+    y = jnp.where(fs, xs, 0) - ep.sum_c
+    t = ep.sum + y
+    sum_c = (t - ep.sum) - y
+
+    vmax = jnp.where(fold[b("max")], jnp.maximum(ep.max, x[b("max")]), ep.max)
+    vmin = jnp.where(fold[b("min")], jnp.minimum(ep.min, x[b("min")]), ep.min)
+    last = jnp.where(fold[b("last")], x[b("last")], ep.last)
+
+    nstd = jnp.maximum(steps[b("std")], 1).astype(plan.dtype)
+    values = jnp.concatenate(
+        [
+            mean[: plan.sizes[0]],
+            jnp.sqrt(m2 / nstd),
+            t - sum_c,
+            vmax,
+            vmin,
+            last,
+        ],
+        axis=0,
+    )
+    new = EpisodeState(steps, mean, m2, t, sum_c, vmax, vmin, last)
+    fresh = init(plan, x.shape[1])
+    d = done[None, :]
+    reset = jax.tree.map(lambda f, v: jnp.where(d, f, v), fresh, new)
+    return reset, values, steps > 0
+
+
+def running(plan: EpisodePlan, ep: EpisodeState) -> jax.Array:
+    """Current value of every running episode `[M, E]` (NaN where it has no step yet)."""
+    b = plan.block
+    nstd = jnp.maximum(ep.steps[b("std")], 1).astype(plan.dtype)
+    values = jnp.concatenate(
+        [
+            ep.mean[: plan.sizes[0]],
+            jnp.sqrt(ep.m2 / nstd),
+            ep.sum - ep.sum_c,
+            ep.max,
+            ep.min,
+            ep.last,
+        ],
+        axis=0,
+    )
+    return jnp.where(ep.steps > 0, values, jnp.nan)

@@ -1,0 +1,242 @@
+"""Static configuration: terms, logged values, report statistics. Validated when built.
+
+Nothing here is traced: these objects live in the builder's closure, never in the state.
+"""
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+EPISODE_REDUCTIONS = ("mean", "sum", "max", "min", "last", "std")
+SIMPLE_STATS = ("mean", "std", "min", "max", "sum", "count")
+NONFINITE_POLICIES = ("skip", "propagate", "raise")
+DEFAULT_STATS = ("mean", "std", "min", "max", "count")
+
+
+@dataclasses.dataclass(frozen=True)
+class Ema:
+    """Exponential moving average `ema = c*x + (1-c)*ema`, seeded by the first value.
+
+    Carried across periods; no bias correction (RLlib's semantics).
+    """
+
+    coeff: float = 0.01
+
+    def __post_init__(self):
+        c = self.coeff
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not (0.0 < c <= 1.0):
+            raise ValueError(
+                f"ema coefficient must be a number in (0, 1], got {c!r}. "
+                "Use e.g. jaxmetrics.ema(0.01): 0.01 weighs the newest value 1%."
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class Window:
+    """Statistics of the last `size` values (mean/std/min/max and exact percentiles).
+
+    Persists across periods. Percentiles use linear interpolation (numpy's default).
+    """
+
+    size: int
+    percentiles: tuple[float, ...] = ()
+
+    def __post_init__(self):
+        n = self.size
+        if isinstance(n, bool) or not isinstance(n, int) or n <= 0:
+            raise ValueError(
+                f"window size must be a positive int, got {n!r}. Use e.g. jaxmetrics.window(100)."
+            )
+        ps = tuple(self.percentiles)
+        for p in ps:
+            if isinstance(p, bool) or not isinstance(p, (int, float)) or not (0 <= p <= 100):
+                raise ValueError(
+                    f"window percentiles must be numbers in [0, 100], got {p!r} in {ps!r}."
+                )
+        if len(set(ps)) != len(ps):
+            raise ValueError(f"window percentiles must be distinct, got {ps!r}.")
+        object.__setattr__(self, "percentiles", tuple(float(p) for p in ps))
+
+
+@dataclasses.dataclass(frozen=True)
+class Histogram:
+    """Counts of values in `bins` equal-width bins over `range` (numpy's edges), per period.
+
+    Values below or above the range are counted as underflow/overflow; the right edge
+    belongs to the last bin, as in `numpy.histogram`.
+    """
+
+    bins: int
+    range: tuple[float, float]
+
+    def __post_init__(self):
+        b = self.bins
+        if isinstance(b, bool) or not isinstance(b, int) or b <= 0:
+            raise ValueError(f"histogram bins must be a positive int, got {b!r}.")
+        r = tuple(self.range)
+        if len(r) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in r):
+            raise ValueError(
+                f"histogram range must be two finite numbers (lo, hi), got {self.range!r}."
+            )
+        if not r[0] < r[1]:
+            raise ValueError(f"histogram range needs lo < hi, got {r!r}.")
+        object.__setattr__(self, "range", (float(r[0]), float(r[1])))
+
+
+def ema(coeff: float = 0.01) -> Ema:
+    """Report statistic: exponential moving average with coefficient `coeff` in (0, 1].
+
+    Examples:
+      >>> import jaxmetrics as jm
+      >>> jm.ema(0.1)
+      Ema(coeff=0.1)
+    """
+    return Ema(coeff)
+
+
+def window(size: int, percentiles: Sequence[float] = ()) -> Window:
+    """Report statistic: mean/std/min/max (and percentiles) of the last `size` values.
+
+    Examples:
+      >>> import jaxmetrics as jm
+      >>> jm.window(100, percentiles=(50, 90))
+      Window(size=100, percentiles=(50.0, 90.0))
+    """
+    return Window(size, tuple(percentiles))
+
+
+def histogram(bins: int, range: tuple[float, float]) -> Histogram:  # noqa: A002
+    """Report statistic: a per-period histogram with `bins` bins over `range`.
+
+    Examples:
+      >>> import jaxmetrics as jm
+      >>> jm.histogram(10, (0.0, 1.0))
+      Histogram(bins=10, range=(0.0, 1.0))
+    """
+    return Histogram(bins, range)
+
+
+Stat = str | Ema | Window | Histogram
+
+
+@dataclasses.dataclass(frozen=True)
+class StatSpec:
+    """The validated report statistics of one metric."""
+
+    simple: frozenset[str]
+    ema: Ema | None
+    window: Window | None
+    histogram: Histogram | None
+
+
+def parse_stats(stats: Sequence[Stat], where: str) -> StatSpec:
+    if isinstance(stats, (str, Ema, Window, Histogram)):
+        stats = (stats,)
+    simple: set[str] = set()
+    found: dict[type, Any] = {}
+    for s in stats:
+        if isinstance(s, str):
+            if s not in SIMPLE_STATS:
+                hint = ""
+                if s in ("ema", "window", "histogram", "percentile"):
+                    hint = f" Use jaxmetrics.{s if s != 'percentile' else 'window'}(...) for it."
+                raise ValueError(
+                    f"{where}: unknown report statistic {s!r}; expected one of "
+                    f"{SIMPLE_STATS} or jaxmetrics.ema/window/histogram(...).{hint}"
+                )
+            simple.add(s)
+        elif isinstance(s, (Ema, Window, Histogram)):
+            if type(s) in found:
+                raise ValueError(
+                    f"{where}: at most one {type(s).__name__.lower()} statistic per metric, "
+                    f"got {found[type(s)]!r} and {s!r}. Define a second term for another one."
+                )
+            found[type(s)] = s
+        else:
+            raise TypeError(
+                f"{where}: a report statistic must be a string or jaxmetrics.ema/window/"
+                f"histogram(...), got {s!r} of type {type(s).__name__}."
+            )
+    return StatSpec(frozenset(simple), found.get(Ema), found.get(Window), found.get(Histogram))
+
+
+def check_policy(policy: str, where: str) -> str:
+    if policy not in NONFINITE_POLICIES:
+        raise ValueError(
+            f"{where}: unknown nonfinite policy {policy!r}; expected one of {NONFINITE_POLICIES}."
+        )
+    return policy
+
+
+def check_name(name: Any, where: str) -> str:
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{where}: names must be non-empty strings, got {name!r}.")
+    return name
+
+
+@dataclasses.dataclass(frozen=True)
+class Term:
+    """A metric term: a pure function evaluated once per env step.
+
+    `fn(step_input, **params)` returns one value per env (shape `[num_envs]`, float, int or
+    bool) or, when `outputs` is given, a dict with exactly those keys, each `[num_envs]`
+    (several metrics from one function, sharing intermediates). An output `o` of term `t`
+    is the metric `t/o`.
+
+    Args:
+      fn: the term function.
+      reduce: episode reduction, one of "mean" (per-step average), "sum", "max", "min",
+        "last", "std"; for a multi-output term, one string for all or a dict per output.
+      stats: report statistics over finished episodes (strings and
+        `jaxmetrics.ema/window/histogram`).
+      params: extra keyword arguments bound to `fn`.
+      outputs: output names of a multi-output term (the keys of the returned dict).
+      nonfinite: "skip" (default: leave NaN/inf steps out and count them), "propagate"
+        or "raise" (raise at flush); None uses the `Metrics` default.
+
+    Examples:
+      >>> import jax.numpy as jnp, jaxmetrics as jm
+      >>> speed = jm.Term(lambda s: jnp.abs(s["qvel"]).sum(-1), reduce="max")
+      >>> speed.reduce
+      'max'
+    """
+
+    fn: Callable[..., Any]
+    reduce: str | Mapping[str, str] = "mean"
+    stats: Sequence[Stat] = DEFAULT_STATS
+    params: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    outputs: Sequence[str] | None = None
+    nonfinite: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Logged:
+    """A value logged directly by training code (loss, KL, learning rate, ...).
+
+    Each call of `Metrics.log` adds the given scalar (or every element of an array) as
+    values weighing 1 each.
+
+    Args:
+      stats: report statistics over the logged values.
+      nonfinite: see `Term`.
+
+    Examples:
+      >>> import jaxmetrics as jm
+      >>> jm.Logged(stats=("mean", jm.ema(0.1))).stats
+      ('mean', Ema(coeff=0.1))
+    """
+
+    stats: Sequence[Stat] = DEFAULT_STATS
+    nonfinite: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class MetricSpec:
+    """One row of a stream: a single reported metric after flattening terms."""
+
+    name: str  # metric name, e.g. "reward/forward"
+    term: str  # term (or logged) name it comes from
+    reduce: str | None  # episode reduction; None for logged values
+    stats: StatSpec
+    nonfinite: str

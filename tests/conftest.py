@@ -1,0 +1,16 @@
+"""Strict JAX for the whole suite: implicit rank/dtype promotion over the env axis is the
+bug class these settings catch. Two CPU devices make the sharding tests real."""
+
+import os
+
+import jax
+
+jax.config.update("jax_num_cpu_devices", 2)
+jax.config.update("jax_numpy_dtype_promotion", "strict")
+jax.config.update("jax_numpy_rank_promotion", "raise")
+# Compiles of Brax/MJX rollouts dominate the suite; a persistent cache makes reruns cheap.
+jax.config.update(
+    "jax_compilation_cache_dir",
+    os.environ.get("JAXMETRICS_TEST_CACHE", os.path.join(os.path.dirname(__file__), "..", ".jax_cache")),
+)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
