@@ -16,6 +16,8 @@ from ._spec import ema as ema
 from ._spec import histogram as histogram
 from ._spec import window as window
 from ._state import MetricsState as MetricsState
+from ._step import Transition as Transition
+from ._step import wrap_step as wrap_step
 
 __version__ = "0.1.0"
 
@@ -29,8 +31,10 @@ __all__ = [
     "NonFiniteError",
     "TagInfo",
     "Term",
+    "Transition",
     "Window",
     "ema",
     "histogram",
     "window",
+    "wrap_step",
 ]

@@ -1,0 +1,40 @@
+"""Brax integration: a `MetricsWrapper` (Brax's `EpisodeWrapper` plus metrics) and
+ready-made terms over its `Transition`.
+
+Wrapper order: `AutoResetWrapper(MetricsWrapper(VmapWrapper(env), metrics, episode_length))`,
+built by `wrap`. Importing this module imports Brax; `import jaxmetrics` does not.
+"""
+
+from ._terms import control_effort as control_effort
+from ._terms import episode_length as episode_length
+from ._terms import episode_return as episode_return
+from ._terms import joint_velocity as joint_velocity
+from ._terms import norm as norm
+from ._terms import state_metrics as state_metrics
+from ._terms import success_rate as success_rate
+from ._terms import termination_rate as termination_rate
+from ._terms import truncation_rate as truncation_rate
+from ._wrapper import STATE_KEY as STATE_KEY
+from ._wrapper import MetricsWrapper as MetricsWrapper
+from ._wrapper import Transition as Transition
+from ._wrapper import metrics_state as metrics_state
+from ._wrapper import replace_metrics_state as replace_metrics_state
+from ._wrapper import wrap as wrap
+
+__all__ = [
+    "STATE_KEY",
+    "MetricsWrapper",
+    "Transition",
+    "control_effort",
+    "episode_length",
+    "episode_return",
+    "joint_velocity",
+    "metrics_state",
+    "norm",
+    "replace_metrics_state",
+    "state_metrics",
+    "success_rate",
+    "termination_rate",
+    "truncation_rate",
+    "wrap",
+]

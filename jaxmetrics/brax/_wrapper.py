@@ -1,0 +1,322 @@
+"""The Brax `MetricsWrapper`: Brax's `EpisodeWrapper` plus metrics folded on every sub-step.
+
+Where the MetricsState lives, and why the wrapper sits where it does:
+
+- The MetricsState is one batched object for all envs of a batched env (its per-env
+  accumulators already have an env axis, and its report streams have none). So it is
+  stored once, in `State.info[STATE_KEY]`, by a wrapper that sits *above* the
+  `VmapWrapper` (Brax's per-env `info` leaves are vmapped; this one must not be).
+- It replaces `EpisodeWrapper` rather than wrapping it: with `action_repeat > 1` only the
+  loop over sub-steps sees every sub-step (google/brax#610), and the time limit must be
+  known to end an episode on the right step.
+- It sits *below* `AutoResetWrapper`, which swaps `obs` and `pipeline_state` for the reset
+  ones on done steps: terms must see the terminal state, not the next episode's first.
+
+Hence the order `AutoResetWrapper(MetricsWrapper(VmapWrapper(env)))`, built by `wrap`.
+"""
+
+import contextlib
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from brax.envs.base import Env, State, Wrapper
+from brax.envs.wrappers import training as brax_training
+
+from .._metrics import Metrics
+from .._state import MetricsState
+
+STATE_KEY = "jaxmetrics"
+"""The `State.info` key under which the MetricsState of the whole batch is kept."""
+
+
+class Transition(NamedTuple):
+    """What a term sees on each (sub-)step of a `MetricsWrapper` env.
+
+    Every array has the env axis first (`[num_envs, ...]`). With `action_repeat > 1`
+    terms are evaluated once per physics sub-step (each call of the inner env's `step`),
+    and every sub-step is a step of the episode: a "mean" term is the mean over all
+    sub-steps (equal to averaging each env step's sub-step mean), a "sum" term sums every
+    sub-step (as Brax sums rewards), "max"/"min" run over all sub-steps, "last" is the
+    last sub-step's value. The episode ends on the last sub-step of the env step where
+    `done` is set.
+
+    Attributes:
+      prev_state: the inner (batched) env's `State` before this sub-step; on the first
+        step of an episode, the reset state.
+      state: the inner env's `State` after this sub-step, before any auto-reset: on the
+        terminal step it is the terminal state. `state.reward` and `state.metrics` are
+        this sub-step's; `state.info` holds the episode keys of the previous env step
+        (use the fields below for this step's flags).
+      action: the action `[num_envs, action_size]`, the same on every sub-step.
+      done: bool `[num_envs]`, the episode ends on this sub-step (termination or
+        truncation); only ever set on the last sub-step of an env step.
+      truncation: bool `[num_envs]`, the episode ends here because the time limit
+        (`episode_length`) was reached and the env did not terminate (Brax's
+        `info['truncation']`).
+      termination: bool `[num_envs]`, the episode ends here because the env set `done`
+        (`done & ~truncation`).
+      dt: seconds per sub-step (the inner env's `dt`), or None if the env has none.
+      episode_length: the time limit in sub-steps (Brax's units, as `info['steps']`).
+    """
+
+    prev_state: State
+    state: State
+    action: jax.Array
+    done: jax.Array
+    truncation: jax.Array
+    termination: jax.Array
+    dt: float | None
+    episode_length: int
+
+
+@contextlib.contextmanager
+def _third_party():
+    # Brax and MJX internals rely on implicit promotion: run them under JAX's defaults
+    # whatever the user's config (terms still run under the user's).
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        yield
+
+
+def _positive_int(value: Any, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"MetricsWrapper({name}=...) must be a positive int, got {value!r}.")
+    return value
+
+
+def _check_inner(env: Env) -> None:
+    e = env
+    while isinstance(e, Wrapper):
+        if isinstance(e, MetricsWrapper):
+            raise ValueError("MetricsWrapper is already in this env stack; wrap an env only once.")
+        if isinstance(e, (brax_training.EpisodeWrapper, brax_training.AutoResetWrapper)):
+            raise ValueError(
+                f"MetricsWrapper must wrap the batched env directly, but found "
+                f"{type(e).__name__} below it. MetricsWrapper replaces EpisodeWrapper and "
+                "must sit below AutoResetWrapper: AutoResetWrapper(MetricsWrapper("
+                "VmapWrapper(env), metrics, episode_length)), which "
+                "jaxmetrics.brax.wrap(env, metrics, episode_length) builds."
+            )
+        e = e.env
+
+
+class MetricsWrapper(Wrapper):
+    """Brax's `EpisodeWrapper` that also folds a `Metrics` spec on every physics sub-step.
+
+    A drop-in replacement for `brax.envs.wrappers.training.EpisodeWrapper`: it steps the
+    inner env `action_repeat` times per env step, ends episodes at `episode_length`
+    (counted in sub-steps, as Brax does), and writes Brax's keys `info['steps']`,
+    `info['truncation']`, `info['episode_done']` and `info['episode_metrics']` with
+    Brax's exact semantics, so code reading them keeps working. In addition it keeps the
+    MetricsState of the whole batch in `info[STATE_KEY]` and calls `metrics.update` on
+    every sub-step with a `Transition`.
+
+    Required order (what `wrap` builds)::
+
+        AutoResetWrapper(MetricsWrapper(VmapWrapper(env), metrics, episode_length))
+
+    It must wrap the batched env directly (no `EpisodeWrapper` below it: it is one) and
+    sit below `AutoResetWrapper`, so that terms see the terminal state of each episode.
+    The MetricsState is not per env: code that maps over every `info` leaf assuming a
+    leading env axis must leave `info[STATE_KEY]` alone. `reset` starts a fresh
+    MetricsState. `Counters/env_steps` counts sub-steps (env steps x `action_repeat`,
+    Brax's `num_timesteps` convention).
+
+    Args:
+      env: a batched Brax env (`VmapWrapper` or `DomainRandomizationVmapWrapper`, or any
+        env whose `done` has shape `[num_envs]`).
+      metrics: the metrics spec; its terms receive a `Transition`.
+      episode_length: the time limit, in sub-steps.
+      action_repeat: inner env steps per env step; terms are evaluated on each.
+
+    Raises:
+      ValueError: for a non-positive length/repeat, an env that already contains an
+        `EpisodeWrapper`, `AutoResetWrapper` or `MetricsWrapper`, or (at `reset`) an
+        unbatched env.
+    """
+
+    def __init__(self, env: Env, metrics: Metrics, episode_length: int, action_repeat: int = 1):
+        super().__init__(env)
+        if not isinstance(metrics, Metrics):
+            raise TypeError(
+                f"MetricsWrapper(metrics=...) must be a jaxmetrics.Metrics, got "
+                f"{type(metrics).__name__}."
+            )
+        _check_inner(env)
+        self.metrics = metrics
+        self.episode_length = _positive_int(episode_length, "episode_length")
+        self.action_repeat = _positive_int(action_repeat, "action_repeat")
+        dt = getattr(env, "dt", None)
+        self.sub_dt = None if dt is None else float(dt)
+
+    def reset(self, rng: jax.Array) -> State:
+        with _third_party():
+            state = self.env.reset(rng)
+        done = jnp.asarray(state.done)
+        if done.ndim != 1:
+            raise ValueError(
+                f"MetricsWrapper needs a batched env (done of shape [num_envs]), got done of "
+                f"shape {done.shape}. Wrap the env in brax.envs.training.VmapWrapper first "
+                "(jaxmetrics.brax.wrap does) and reset it with one key per env."
+            )
+        if STATE_KEY in state.info:
+            raise ValueError(f"the inner env already uses info[{STATE_KEY!r}].")
+        zeros = jnp.zeros(done.shape, jnp.float32)
+        episode_metrics = {"sum_reward": zeros, "length": zeros}
+        episode_metrics.update({k: zeros for k in state.metrics})
+        info = dict(state.info)
+        info.update(
+            steps=zeros,
+            truncation=zeros,
+            episode_done=zeros,
+            episode_metrics=episode_metrics,
+        )
+        info[STATE_KEY] = self.metrics.init(done.shape[0])
+        return state.replace(info=info)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        info = dict(state.info)
+        if STATE_KEY not in info:
+            raise ValueError(
+                f"this State has no info[{STATE_KEY!r}]: reset it with this wrapper's reset "
+                "(or replace_metrics_state) before stepping."
+            )
+        mstate = info.pop(STATE_KEY)
+        inner = state.replace(info=info)
+        steps = info["steps"] + self.action_repeat
+        time_up = steps >= self.episode_length
+        last_index = self.action_repeat - 1
+
+        def sub_step(carry, k):
+            prev, ms = carry
+            # Envs mutate the dicts of the state they are given (Brax's ant updates
+            # `state.metrics` in place): give them copies so `prev` stays the pre-step state.
+            with _third_party():
+                nxt = self.env.step(
+                    prev.replace(metrics=dict(prev.metrics), info=dict(prev.info)), action
+                )
+            last = k == last_index
+            terminated = last & (jnp.asarray(nxt.done) != 0)
+            truncated = last & time_up & ~terminated
+            done = terminated | truncated
+            t = Transition(
+                prev_state=prev,
+                state=nxt,
+                action=action,
+                done=done,
+                truncation=truncated,
+                termination=terminated,
+                dt=self.sub_dt,
+                episode_length=self.episode_length,
+            )
+            return (nxt, self.metrics.update(ms, t, done)), nxt.reward
+
+        (nstate, mstate), rewards = jax.lax.scan(
+            sub_step, (inner, mstate), jnp.arange(self.action_repeat, dtype=jnp.int32)
+        )
+        # Brax's EpisodeWrapper bookkeeping, same operations in the same order.
+        reward = jnp.sum(rewards, axis=0)
+        one = jnp.ones_like(nstate.done)
+        zero = jnp.zeros_like(nstate.done)
+        done = jnp.where(time_up, one, nstate.done)
+        keep = 1 - info["episode_done"]
+        old = info["episode_metrics"]
+        episode_metrics = dict(old)
+        episode_metrics["sum_reward"] = old["sum_reward"] * keep + reward
+        episode_metrics["length"] = old["length"] * keep + self.action_repeat
+        for name, value in nstate.metrics.items():
+            if name != "reward":
+                episode_metrics[name] = old[name] * keep + value
+        new_info = dict(nstate.info)
+        new_info.update(
+            steps=steps,
+            truncation=jnp.where(time_up, 1 - nstate.done, zero),
+            episode_done=done,
+            episode_metrics=episode_metrics,
+        )
+        new_info[STATE_KEY] = mstate
+        return nstate.replace(reward=reward, done=done, info=new_info)
+
+
+def wrap(
+    env: Env,
+    metrics: Metrics,
+    episode_length: int = 1000,
+    action_repeat: int = 1,
+    randomization_fn: Callable[..., Any] | None = None,
+) -> Wrapper:
+    """`brax.envs.training.wrap` with `MetricsWrapper` in place of `EpisodeWrapper`.
+
+    Builds `AutoResetWrapper(MetricsWrapper(VmapWrapper(env), metrics, episode_length,
+    action_repeat))` (`DomainRandomizationVmapWrapper` when `randomization_fn` is given),
+    the same stack and info keys as Brax's. Usable as `brax.training.agents.ppo.train`'s
+    `wrap_env_fn` via `functools.partial(wrap, metrics=metrics)`.
+
+    Args:
+      env: an unbatched Brax env, e.g. `brax.envs.get_environment("ant", backend="mjx")`.
+      metrics: the metrics spec; its terms receive a `jaxmetrics.brax.Transition`.
+      episode_length: the time limit, in sub-steps (env steps x `action_repeat`).
+      action_repeat: inner env steps per env step; terms are evaluated on each.
+      randomization_fn: as in Brax: makes a vectorized system and its vmap in_axes.
+
+    Returns:
+      The wrapped env; `reset` takes one key per env (`[num_envs, 2]`).
+
+    Examples:
+      A rollout (not run here: compiling MJX takes a while)::
+
+          import jax, jaxmetrics as jm, jaxmetrics.brax as jmb
+          from brax import envs
+
+          metrics = jm.Metrics(terms={
+              "return": jmb.episode_return(),
+              "length": jmb.episode_length(),
+              "truncated": jmb.truncation_rate(),
+              "joint_vel": jmb.joint_velocity(),
+          })
+          env = jmb.wrap(envs.get_environment("inverted_pendulum", backend="mjx"),
+                         metrics, episode_length=100)
+          state = env.reset(jax.random.split(jax.random.key(0), 8))
+          state, _ = jax.lax.scan(
+              lambda s, a: (env.step(s, a), None), state, jnp.zeros((200, 8, 1)))
+          report = metrics.to_host(metrics.compute(jmb.metrics_state(state)))
+    """
+    if randomization_fn is None:
+        batched = brax_training.VmapWrapper(env)
+    else:
+        batched = brax_training.DomainRandomizationVmapWrapper(env, randomization_fn)
+    return brax_training.AutoResetWrapper(
+        MetricsWrapper(batched, metrics, episode_length, action_repeat)
+    )
+
+
+def metrics_state(env_state: State) -> MetricsState:
+    """The MetricsState of the whole batch, kept in `env_state.info`.
+
+    Raises:
+      ValueError: if the env was not wrapped by `MetricsWrapper`.
+    """
+    info = getattr(env_state, "info", None)
+    if not isinstance(info, dict) or STATE_KEY not in info:
+        raise ValueError(
+            f"this env state has no info[{STATE_KEY!r}]: build the env with "
+            "jaxmetrics.brax.wrap(env, metrics, ...) (or MetricsWrapper) and reset it."
+        )
+    return info[STATE_KEY]
+
+
+def replace_metrics_state(env_state: State, state: MetricsState) -> State:
+    """`env_state` with its MetricsState replaced (after `reset_period`, `log`, ...).
+
+    Examples:
+      After a flush, start a new period without leaving the graph::
+
+          ms = jmb.metrics_state(env_state)
+          report = metrics.compute(ms)
+          env_state = jmb.replace_metrics_state(env_state, metrics.reset_period(ms))
+    """
+    metrics_state(env_state)
+    if not isinstance(state, MetricsState):
+        raise TypeError(f"expected a MetricsState, got {type(state).__name__}.")
+    return env_state.replace(info={**env_state.info, STATE_KEY: state})
