@@ -4,6 +4,7 @@ Please don't use symbols from the private `_*` modules: everything public is re-
 """
 
 from ._count import Count as Count
+from ._flush import Logger as Logger
 from ._metrics import Metrics as Metrics
 from ._metrics import NonFiniteError as NonFiniteError
 from ._metrics import TagInfo as TagInfo
@@ -18,21 +19,36 @@ from ._spec import window as window
 from ._state import MetricsState as MetricsState
 from ._step import Transition as Transition
 from ._step import wrap_step as wrap_step
+from ._writers import ConsoleWriter as ConsoleWriter
+from ._writers import HistogramData as HistogramData
+from ._writers import JsonlWriter as JsonlWriter
+from ._writers import MemoryWriter as MemoryWriter
+from ._writers import Record as Record
+from ._writers import TensorBoardWriter as TensorBoardWriter
+from ._writers import Writer as Writer
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "ConsoleWriter",
     "Count",
     "Ema",
     "Histogram",
+    "HistogramData",
+    "JsonlWriter",
     "Logged",
+    "Logger",
+    "MemoryWriter",
     "Metrics",
     "MetricsState",
     "NonFiniteError",
+    "Record",
     "TagInfo",
+    "TensorBoardWriter",
     "Term",
     "Transition",
     "Window",
+    "Writer",
     "ema",
     "histogram",
     "window",

@@ -1,0 +1,87 @@
+"""In-graph emit: an ordered `io_callback` under `lax.cond`, fired at period ends only.
+
+JAX can neither `vmap` an ordered `io_callback` nor a `cond` whose branches have IO
+effects. So the emit is a `custom_vmap` function: unbatched, it is `cond(when, write,
+identity)`; under `vmap` its rule moves the batch axis to the front and calls the same
+construction one level up, which computes every batch element's report with an inner
+`vmap` (effect-free) and makes *one* ordered callback carrying all of them, together
+with each element's run index, step and `when`. The host splits them. Nested `vmap`s
+stack further leading axes the same way.
+"""
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax import custom_batching
+from jax.experimental import io_callback
+
+_NEEDS_RUN = (
+    "emit under vmap sends each batch element to its own run, so `run` must be batched "
+    "along the same axis as the state: create Logger(..., runs=N) and call "
+    "logger.emit(state, step, when, run=seed_index) with seed_index vmapped alongside "
+    "(e.g. jax.vmap(train)(keys, jnp.arange(N)))."
+)
+
+
+def _expand(mask: jax.Array, ndim: int) -> jax.Array:
+    return mask.reshape(mask.shape + (1,) * (ndim - mask.ndim))
+
+
+class InGraphEmit:
+    """`emit(state, step, when, run) -> state`, pure and jittable.
+
+    Args:
+      compute: state -> report (in-graph).
+      reset: state -> state at the start of a new period.
+      callback: host function `(report, step, when, run) -> None`; every argument has
+        the same leading batch axes (none when not vmapped).
+    """
+
+    def __init__(
+        self,
+        compute: Callable[[Any], Any],
+        reset: Callable[[Any], Any],
+        callback: Callable[..., None],
+    ):
+        self._compute, self._reset, self._callback = compute, reset, callback
+        self._levels: dict[int, Callable[..., Any]] = {}
+
+    def __call__(self, state: Any, step: jax.Array, when: jax.Array, run: jax.Array) -> Any:
+        return self._level(0)(state, step, when, run)
+
+    def _level(self, nd: int) -> Callable[..., Any]:
+        if nd not in self._levels:
+            self._levels[nd] = self._build(nd)
+        return self._levels[nd]
+
+    def _build(self, nd: int) -> Callable[..., Any]:
+        compute, reset, callback = self._compute, self._reset, self._callback
+        for _ in range(nd):
+            compute, reset = jax.vmap(compute), jax.vmap(reset)
+
+        @custom_batching.custom_vmap
+        def emit(state, step, when, run):
+            def fire(state):
+                io_callback(callback, None, compute(state), step, when, run, ordered=True)
+                new = reset(state)
+                if nd == 0:
+                    return new
+                return jax.tree.map(lambda n, o: jnp.where(_expand(when, n.ndim), n, o), new, state)
+
+            return jax.lax.cond(jnp.any(when), fire, lambda s: s, state)
+
+        @emit.def_vmap
+        def rule(axis_size, in_batched, state, step, when, run):
+            if not in_batched[3]:
+                raise ValueError(_NEEDS_RUN)
+            args = jax.tree.map(
+                lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))),
+                (state, step, when, run),
+                tuple(in_batched),
+            )
+            out = self._level(nd + 1)(*args)
+            return out, jax.tree.map(lambda _: True, out)
+
+        return emit

@@ -1,0 +1,524 @@
+"""The host flush: in-graph compute + reset, an async copy, and a writer thread.
+
+`Logger.flush` dispatches one jitted `compute` + `reset_period` (only the reduced report
+crosses to the host, never O(num_envs)), starts the report's device -> host copy and
+queues it for the writer thread; it returns the reset state without waiting for the
+device or the disk. `Logger.emit` is the same path for training loops inside one `jit`.
+"""
+
+import atexit
+import functools
+import math
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import AbstractContextManager
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _tags
+from ._emit import InGraphEmit
+from ._metrics import Metrics, NonFiniteError, TagInfo
+from ._state import MetricsState
+from ._timer import Timers
+from ._writers import HistogramData, Record, Writer
+
+WritersArg = Sequence[Writer] | Callable[[int], Sequence[Writer]]
+
+
+def _derived_tags(metrics: Metrics, include_running: bool) -> list[TagInfo]:
+    """Tags the logger adds to the spec's: running means, rates, histogram tails."""
+    out = []
+    if include_running:
+        prefix = metrics.prefixes["episode"]
+        for name, spec in metrics.metric_specs.items():
+            if spec.reduce is not None:
+                out.append(TagInfo(_tags.tag(prefix, name, "running"), "episode", name, "running"))
+    for i in metrics.tags:
+        if i.group == "counter":
+            out.append(TagInfo(f"{i.tag}/per_sec", "counter", i.metric, "per_sec"))
+        elif i.stat == "histogram":
+            for end in ("underflow", "overflow"):
+                out.append(TagInfo(f"{i.tag}/{end}", i.group, i.metric, f"histogram/{end}"))
+    return out
+
+
+class _RunBook:
+    """Per-run host bookkeeping: turns host reports into `Record`s, in order."""
+
+    def __init__(self, infos: Mapping[str, TagInfo], edges: Mapping[str, np.ndarray]):
+        self._infos, self._edges = infos, edges
+        self._seen_nonzero: set[str] = set()
+        self._prev: tuple[float, dict[str, int]] | None = None
+
+    def _sparse(self, scalars: dict[str, float | int], tag: str, n: int) -> None:
+        # Zero counts of rare events are written only once the event has happened.
+        if n or tag in self._seen_nonzero:
+            self._seen_nonzero.add(tag)
+            scalars[tag] = n
+
+    def record(
+        self, host: Mapping[str, Any], step: int, wall_time: float, timers: Mapping[str, float]
+    ) -> Record:
+        scalars: dict[str, float | int] = {}
+        hists: dict[str, HistogramData] = {}
+        windows: dict[str, np.ndarray] = {}
+        counts: dict[str, int] = {}
+        for tag, v in host.items():
+            info = self._infos.get(tag)
+            stat = info.stat if info is not None else "running"
+            if stat == "histogram":
+                c = np.asarray(v, np.int64)
+                if c.sum() > 0:
+                    hists[tag] = HistogramData(self._edges[tag], c[1:-1], int(c[0]), int(c[-1]))
+                self._sparse(scalars, f"{tag}/underflow", int(c[0]))
+                self._sparse(scalars, f"{tag}/overflow", int(c[-1]))
+            elif stat == "window_values":
+                w = np.asarray(v, np.float64)
+                w = w[np.isfinite(w)]
+                if w.size:
+                    windows[tag] = w
+            elif stat == "nonfinite":
+                self._sparse(scalars, tag, int(v))
+            elif stat == "count":
+                scalars[tag] = int(v)
+                if info is not None and info.group == "counter":
+                    counts[tag] = int(v)
+                    if self._prev is not None and wall_time > self._prev[0]:
+                        prev_time, prev = self._prev
+                        scalars[f"{tag}/per_sec"] = (int(v) - prev[tag]) / (wall_time - prev_time)
+            else:
+                f = float(v)
+                if math.isfinite(f):
+                    scalars[tag] = f
+        scalars.update(timers)
+        if counts:
+            self._prev = (wall_time, counts)
+        return Record(step, wall_time, scalars, hists, windows)
+
+
+class Logger(AbstractContextManager):
+    """Writes a `Metrics` state's reports to several writers, without stalling the device.
+
+    Host-loop mode: `state = logger.flush(state, step)` once per iteration. It runs a
+    jitted `compute` + `reset_period`, starts an asynchronous device -> host copy of the
+    (small) report and hands it to the logger's writer thread, then returns the reset
+    state at once; the writer thread turns the report into one `Record` per run and
+    gives it to every writer, in flush order. `close()` (or leaving a `with` block)
+    drains everything in order and closes the writers; `wait()` drains without closing.
+
+    Fully-jitted mode (PureJaxRL style): `state = logger.emit(state, step, when, run=i)`
+    inside the jitted function writes the same records through an ordered `io_callback`
+    under `lax.cond`, only where `when` is true (the period ends), and works under `vmap`
+    over seeds, each seed to its own run.
+
+    What each record holds, beyond the spec's tags (`Metrics.tags`):
+
+    - `Counters/<c>/per_sec`: counter growth per second of host wall time between two
+      records of the run (so from the second record on);
+    - `<timer_prefix>/<name>`: seconds spent in `with logger.timer(name):` since the last
+      flush (0.0 once a timer has run before; host flushes only);
+    - `<metric>/histogram/underflow|overflow`: values outside the histogram range;
+    - `<metric>/running` with `include_running`.
+
+    Empty statistics (NaN: no episode in the period) are left out, never written as 0; a
+    period's `/count` (and `/sum`) of 0 is a true value and is written. `/nonfinite` and
+    histogram under/overflow counts are written from their first non-zero value on, so
+    that healthy runs are not cluttered with rows of zeros.
+
+    Non-finite values (policy "skip" warns, "raise" raises `NonFiniteError`, both naming
+    the metric and the step) surface on the caller's thread at a fixed point: a flush's
+    are checked by the *next* `flush` (after it has queued its own report, so no data is
+    lost) or by `wait()`/`close()`; emitted ones by the next `flush`, `wait()` or
+    `close()` after the jitted call. Writer errors surface the same way.
+
+    Args:
+      metrics: the spec whose states are flushed.
+      writers: the writers of the run (`runs=1`), or a function `run -> writers` called
+        once per run here, e.g. `lambda run: [TensorBoardWriter(f"{root}/seed_{run}")]`.
+        Writers are created (and their paths checked) before training starts.
+      runs: number of runs. With `runs > 1`, `flush` takes states with a leading
+        `[runs]` axis (e.g. `vmap`-ed seeds) and `emit` needs `run=`.
+      include_running: also report running episodes (`Metrics.compute`).
+      timer_prefix: tag prefix of the timers.
+      max_pending: flushes that may wait for the writer thread before `flush` blocks
+        (back-pressure when the disk is slower than training).
+
+    Examples:
+      >>> import jax.numpy as jnp, jaxmetrics as jm
+      >>> metrics = jm.Metrics(logged=["loss"], counters=["updates"])
+      >>> memory = jm.MemoryWriter()
+      >>> state = metrics.init(num_envs=1)
+      >>> with jm.Logger(metrics, [memory]) as logger:
+      ...     for it in range(3):
+      ...         with logger.timer("update"):
+      ...             state = metrics.log(state, {"loss": jnp.float32(it)})
+      ...             state = metrics.increment(state, "updates")
+      ...         state = logger.flush(state, step=it)
+      >>> [r.scalars["Train/loss"] for r in memory.records]
+      [0.0, 1.0, 2.0]
+      >>> memory.records[-1].scalars["Counters/updates"]
+      3
+    """
+
+    def __init__(
+        self,
+        metrics: Metrics,
+        writers: WritersArg,
+        *,
+        runs: int = 1,
+        include_running: bool = False,
+        timer_prefix: str = "Timers",
+        max_pending: int = 8,
+    ):
+        if not isinstance(metrics, Metrics):
+            raise TypeError(f"Logger: metrics must be a jaxmetrics.Metrics, got {metrics!r}.")
+        if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
+            raise ValueError(f"Logger: runs must be an int >= 1, got {runs!r}.")
+        if isinstance(max_pending, bool) or not isinstance(max_pending, int) or max_pending < 1:
+            raise ValueError(f"Logger: max_pending must be an int >= 1, got {max_pending!r}.")
+        if not isinstance(timer_prefix, str) or not timer_prefix:
+            raise ValueError(f"Logger: timer_prefix must be a non-empty string, got {timer_prefix!r}.")
+        self.metrics = metrics
+        self.runs = runs
+        self.tags: tuple[TagInfo, ...] = metrics.tags + tuple(_derived_tags(metrics, include_running))
+        _tags.check_unique((i.tag, f"{i.group} {i.metric!r} ({i.stat})") for i in self.tags)
+        self._timer_prefix = timer_prefix
+        self._timer_tags: set[str] = set()
+        self._writers = self._make_writers(writers, runs)
+        infos = {i.tag: i for i in self.tags}
+        edges = {i.tag: metrics.histogram_edges(i.tag) for i in metrics.tags if i.stat == "histogram"}
+        self._books = [_RunBook(infos, edges) for _ in range(runs)]
+        self._nonfinite_tags = [i.tag for i in metrics.tags if i.stat == "nonfinite"]
+
+        def compute(state):
+            return metrics.compute(state, include_running=include_running)
+
+        def compute_reset(state):
+            new = metrics.reset_period(state)
+            return compute(state), new.episodes, new.logged
+
+        self._flush_fn = jax.jit(compute_reset if runs == 1 else jax.vmap(compute_reset))
+        self._emit = InGraphEmit(compute, metrics.reset_period, self._on_emit)
+        self._timers = Timers()
+        self._lock = threading.Lock()
+        self._errors: list[BaseException] = []
+        self._unchecked: list[tuple[Any, int | None, Mapping[str, Any]]] = []
+        self._slots = threading.Semaphore(max_pending)
+        self._queue: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
+        self._closed = False
+        self.emit_calls = 0
+        self.report_nbytes = 0
+        for ws in self._writers:
+            for w in ws:
+                w.open(self.tags)
+        self._thread = threading.Thread(target=self._work, name="jaxmetrics-logger", daemon=True)
+        self._thread.start()
+        # Daemon threads die at interpreter exit: drain whatever is queued first.
+        atexit.register(self.close)
+
+    @staticmethod
+    def _make_writers(writers: WritersArg, runs: int) -> list[list[Writer]]:
+        if callable(writers) and not isinstance(writers, Writer):
+            made = [list(writers(r)) for r in range(runs)]
+        elif runs > 1:
+            raise TypeError(
+                f"Logger(runs={runs}): pass writers as a function run -> writers, e.g. "
+                "lambda run: [jm.TensorBoardWriter(f'{root}/seed_{run}')], so that each run "
+                "writes to its own place."
+            )
+        elif isinstance(writers, Writer):
+            raise TypeError("Logger: writers must be a list of writers; wrap the writer in [...].")
+        else:
+            made = [list(writers)]
+        for ws in made:
+            for w in ws:
+                if not isinstance(w, Writer):
+                    raise TypeError(
+                        f"Logger: {w!r} is not a writer: it needs open(tags), write(record) "
+                        "and close() methods (see jaxmetrics.Writer)."
+                    )
+        return made
+
+    # ------------------------------------------------------------------ host loop
+
+    def flush(self, state: MetricsState, step: Any) -> MetricsState:
+        """Writes the state's report (asynchronously) and returns the state for the next
+        period (`reset_period`).
+
+        Args:
+          state: a state of this logger's spec; with `runs > 1`, with a leading
+            `[runs]` axis.
+          step: the x-axis value: an int, or an int array (scalar, or `[runs]`); a device
+            array is fetched by the writer thread, not here.
+
+        Returns:
+          The reset state. Only the period statistics are new arrays; running episodes,
+          windows-free parts and counters are the same arrays as in `state`.
+
+        Raises:
+          NonFiniteError: a metric with policy "raise" saw non-finite values in the
+            previous flush (this flush is queued first).
+          RuntimeError: the logger is closed, or a writer failed.
+        """
+        self._check_open("flush")
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(state)):
+            raise TypeError(
+                "Logger.flush is a host call and cannot run inside jit/vmap/scan; inside "
+                "a jitted training loop use logger.emit(state, step, when)."
+            )
+        self._check_leading(state)
+        self._check_step(step)
+        report, episodes, logged = self._flush_fn(state)
+        leaves = jax.tree.leaves(report)
+        for leaf in leaves:
+            leaf.copy_to_host_async()
+        self.report_nbytes = sum(leaf.nbytes for leaf in leaves)
+        wall_time = time.time()
+        timers = self._timers.take()
+        self._slots.acquire()
+        self._queue.put(functools.partial(self._write_flush, report, step, wall_time, timers))
+        earlier = self._take_unchecked()
+        with self._lock:
+            subset = {t: report[t] for t in self._nonfinite_tags}
+            self._unchecked.append((step, None if self.runs == 1 else -1, subset))
+        self._surface(earlier)
+        return state._replace(episodes=episodes, logged=logged)
+
+    def timer(self, name: str) -> AbstractContextManager[None]:
+        """`with logger.timer("rollout"): ...` adds the block's wall time to the tag
+        `<timer_prefix>/rollout` of the next flush.
+
+        JAX dispatches asynchronously: to time device work, block on its result inside
+        the block (`jax.block_until_ready`).
+        """
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"Logger.timer: name must be a non-empty string, got {name!r}.")
+        tag = f"{self._timer_prefix}/{name}"
+        if tag not in self._timer_tags:
+            _tags.check_unique(
+                [(i.tag, f"tag {i.tag!r}") for i in self.tags]
+                + [(t, f"timer {t!r}") for t in sorted(self._timer_tags)]
+                + [(tag, f"timer {name!r}")]
+            )
+            self._timer_tags.add(tag)
+        return self._timers.measure(tag)
+
+    def wait(self) -> None:
+        """Blocks until everything flushed or emitted so far is written.
+
+        Raises what was deferred (see the class docstring).
+        """
+        self._check_open("wait")
+        jax.effects_barrier()
+        done = threading.Event()
+        self._queue.put(done.set)
+        done.wait()
+        self._surface(self._take_unchecked())
+
+    def close(self) -> None:
+        """Drains everything in order, closes the writers and stops the writer thread.
+
+        Idempotent. Raises what was deferred, after the writers are closed.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        atexit.unregister(self.close)
+        jax.effects_barrier()
+        self._queue.put(self._close_writers)
+        self._queue.put(None)
+        self._thread.join()
+        self._surface(self._take_unchecked())
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ in-graph
+
+    def emit(self, state: MetricsState, step: Any, when: Any, *, run: Any = None) -> MetricsState:
+        """In-graph flush for training loops inside one `jit`: where `when` is true, the
+        report goes to the writers (ordered `io_callback`) and the period resets.
+
+        Pure and jittable; a no-op (no callback, no host traffic) where `when` is false.
+        Under `vmap` over seeds, pass each seed's run index as `run` (vmapped alongside,
+        e.g. `jax.vmap(train)(keys, jnp.arange(runs))`): one callback per period end
+        carries every seed, and each goes to its own run's writers. `when` may differ
+        between seeds.
+
+        Args:
+          state: the state (per seed, under vmap).
+          step: int scalar, the x-axis value.
+          when: bool scalar: whether this is a period end.
+          run: int scalar run index in `[0, runs)`; may be left out when `runs == 1`.
+
+        Returns:
+          The state, reset where `when` is true.
+
+        Examples:
+          >>> import jax, jax.numpy as jnp, jaxmetrics as jm
+          >>> metrics = jm.Metrics(logged=["x"])
+          >>> memory = [jm.MemoryWriter() for _ in range(2)]
+          >>> logger = jm.Logger(metrics, lambda run: [memory[run]], runs=2)
+          >>> def train(seed, run):
+          ...     def body(state, i):
+          ...         state = metrics.log(state, {"x": seed * 10.0 + i})
+          ...         return logger.emit(state, i, i % 2 == 1, run=run), None
+          ...     return jax.lax.scan(body, metrics.init(1), jnp.arange(4))[0]
+          >>> _ = jax.jit(jax.vmap(train))(jnp.arange(2.0), jnp.arange(2))
+          >>> logger.close()
+          >>> [(r.step, r.scalars["Train/x"]) for r in memory[1].records]
+          [(1, 10.5), (3, 12.5)]
+        """
+        if run is None:
+            if self.runs != 1:
+                raise TypeError(f"Logger(runs={self.runs}).emit needs run=<run index>.")
+            run = jnp.zeros((), jnp.int32)
+        run = jnp.asarray(run)
+        step = jnp.asarray(step)
+        when = jnp.asarray(when)
+        for name, v, ok in (
+            ("step", step, jnp.issubdtype(step.dtype, jnp.integer)),
+            ("run", run, jnp.issubdtype(run.dtype, jnp.integer)),
+            ("when", when, when.dtype == jnp.bool_),
+        ):
+            if not ok or v.shape != ():
+                kind = "bool" if name == "when" else "int"
+                raise TypeError(f"Logger.emit: {name} must be a {kind} scalar, got {v.dtype}{list(v.shape)}.")
+        return self._emit(state, step, when, run)
+
+    def _on_emit(self, report: Any, step: np.ndarray, when: np.ndarray, run: np.ndarray) -> None:
+        wall_time = time.time()
+        host = self.metrics.to_host(report)
+        nd = np.ndim(when)
+        n = int(np.size(when))
+        flat = {k: np.reshape(v, (n,) + np.shape(v)[nd:]) for k, v in host.items()}
+        step, when, run = (np.reshape(a, (n,)) for a in (step, when, run))
+        with self._lock:
+            self.emit_calls += 1
+            for i in np.flatnonzero(when):
+                r, s = int(run[i]), int(step[i])
+                if not 0 <= r < self.runs:
+                    self._errors.append(
+                        ValueError(f"Logger.emit: run index {r} is outside [0, {self.runs}).")
+                    )
+                    continue
+                one = {k: v[i] for k, v in flat.items()}
+                self._unchecked.append((s, r, {t: one[t] for t in self._nonfinite_tags}))
+                self._queue.put(functools.partial(self._write_run, r, one, s, wall_time, {}))
+
+    # ------------------------------------------------------------------ writer thread
+
+    def _work(self) -> None:
+        while True:
+            job = self._queue.get()
+            if job is None:
+                return
+            try:
+                job()
+            except BaseException as e:  # noqa: BLE001 (handed to the caller's thread)
+                with self._lock:
+                    self._errors.append(e)
+
+    def _write_flush(self, report: Any, step: Any, wall_time: float, timers: dict) -> None:
+        try:
+            host = self.metrics.to_host(report)
+            steps = np.broadcast_to(np.asarray(step), (self.runs,))
+            for r in range(self.runs):
+                one = host if self.runs == 1 else {k: np.asarray(v)[r] for k, v in host.items()}
+                self._write_run(r, one, int(steps[r]), wall_time, timers)
+        finally:
+            self._slots.release()
+
+    def _write_run(self, run: int, host: Mapping[str, Any], step: int, wall_time: float, timers: dict) -> None:
+        record = self._books[run].record(host, step, wall_time, timers)
+        for w in self._writers[run]:
+            try:
+                w.write(record)
+            except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
+                err = RuntimeError(f"writer {w!r} of run {run} failed at step {step}: {e!r}")
+                err.__cause__ = e
+                with self._lock:
+                    self._errors.append(err)
+
+    def _close_writers(self) -> None:
+        for run, ws in enumerate(self._writers):
+            for w in ws:
+                try:
+                    w.close()
+                except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
+                    err = RuntimeError(f"closing writer {w!r} of run {run} failed: {e!r}")
+                    err.__cause__ = e
+                    with self._lock:
+                        self._errors.append(err)
+
+    # ------------------------------------------------------------------ checks
+
+    def _check_open(self, fn: str) -> None:
+        if self._closed:
+            raise RuntimeError(f"Logger.{fn}: the logger is closed; create a new Logger.")
+
+    def _check_leading(self, state: Any) -> None:
+        if not isinstance(state, MetricsState):
+            raise TypeError(f"Logger.flush: expected a MetricsState, got {type(state).__name__}.")
+        ref = next(
+            (x for x in (state.counters, state.logged, state.episodes) if x is not None), None
+        )
+        if ref is None:
+            return
+        leaf = ref.lo if state.counters is not None else ref.mean
+        lead = tuple(leaf.shape[:-1])
+        want = () if self.runs == 1 else (self.runs,)
+        if lead != want:
+            hint = (
+                f"for {lead[0]} vmapped seeds create Logger(..., runs={lead[0]})"
+                if self.runs == 1 and len(lead) == 1
+                else f"pass the states of all {self.runs} runs stacked on a leading axis"
+            )
+            raise ValueError(
+                f"Logger(runs={self.runs}).flush: the state has leading axes {lead}, "
+                f"expected {want}; {hint}."
+            )
+
+    def _check_step(self, step: Any) -> None:
+        ok = isinstance(step, (int, np.integer)) and not isinstance(step, bool)
+        if not ok and hasattr(step, "dtype") and hasattr(step, "shape"):
+            ok = jnp.issubdtype(step.dtype, jnp.integer) and tuple(step.shape) in ((), (self.runs,))
+        if not ok:
+            raise TypeError(
+                f"Logger.flush: step must be an int (or an int array of shape () or "
+                f"({self.runs},)), got {step!r}."
+            )
+
+    def _take_unchecked(self) -> list[tuple[Any, int | None, Mapping[str, Any]]]:
+        with self._lock:
+            out, self._unchecked = self._unchecked, []
+        return out
+
+    def _surface(self, pending: Sequence[tuple[Any, int | None, Mapping[str, Any]]]) -> None:
+        """Runs the non-finite checks of earlier reports on the caller's thread and
+        raises what was deferred."""
+        problems: list[str] = []
+        for step, run, subset in pending:
+            host = self.metrics.to_host(subset)
+            steps = np.broadcast_to(np.asarray(step), (self.runs,))
+            runs: Iterator[int | None] = iter([run] if run != -1 else range(self.runs))
+            for r in runs:
+                one = host if run != -1 else {k: np.asarray(v)[r] for k, v in host.items()}
+                where = f"step {int(steps[r or 0])}" + ("" if r is None else f", run {r}")
+                try:
+                    self.metrics.check_nonfinite({k: int(v) for k, v in one.items()})
+                except NonFiniteError as e:
+                    problems.append(f"{where}: {e}")
+        with self._lock:
+            errors, self._errors = self._errors, []
+        if errors:
+            if problems and hasattr(errors[0], "add_note"):
+                errors[0].add_note("Also non-finite values: " + "; ".join(problems))
+            raise errors[0]
+        if problems:
+            raise NonFiniteError("; ".join(problems))
