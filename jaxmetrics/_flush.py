@@ -47,6 +47,18 @@ def _derived_tags(metrics: Metrics, include_running: bool) -> list[TagInfo]:
     return out
 
 
+def _close_quietly(writers: Sequence[Sequence[Any]]) -> None:
+    """Closes what was created before a construction error (that error is what matters)."""
+    for ws in writers:
+        for w in ws:
+            close = getattr(w, "close", None)
+            if callable(close):
+                try:
+                    close()
+                except Exception:  # noqa: BLE001, S110
+                    pass
+
+
 class _RunBook:
     """Per-run host bookkeeping: turns host reports into `Record`s, in order."""
 
@@ -213,9 +225,13 @@ class Logger(AbstractContextManager):
         self._closed = False
         self.emit_calls = 0
         self.report_nbytes = 0
-        for ws in self._writers:
-            for w in ws:
-                w.open(self.tags)
+        try:
+            for ws in self._writers:
+                for w in ws:
+                    w.open(self.tags)
+        except BaseException:
+            _close_quietly(self._writers)
+            raise
         self._thread = threading.Thread(target=self._work, name="jaxmetrics-logger", daemon=True)
         self._thread.start()
         # Daemon threads die at interpreter exit: drain whatever is queued first.
@@ -224,7 +240,13 @@ class Logger(AbstractContextManager):
     @staticmethod
     def _make_writers(writers: WritersArg, runs: int) -> list[list[Writer]]:
         if callable(writers) and not isinstance(writers, Writer):
-            made = [list(writers(r)) for r in range(runs)]
+            made: list[list[Writer]] = []
+            try:
+                for r in range(runs):
+                    made.append(list(writers(r)))
+            except BaseException:
+                _close_quietly(made)
+                raise
         elif runs > 1:
             raise TypeError(
                 f"Logger(runs={runs}): pass writers as a function run -> writers, e.g. "
@@ -238,6 +260,7 @@ class Logger(AbstractContextManager):
         for ws in made:
             for w in ws:
                 if not isinstance(w, Writer):
+                    _close_quietly(made)
                     raise TypeError(
                         f"Logger: {w!r} is not a writer: it needs open(tags), write(record) "
                         "and close() methods (see jaxmetrics.Writer)."

@@ -1,0 +1,328 @@
+"""Writers: what lands in TensorBoard event files, JSON lines, memory and the console,
+checked against a float64 numpy reference of the same data (files read back with
+TensorBoard's own reader and the json module)."""
+
+import io
+import json
+import os
+import subprocess
+import sys
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from tensorboard.backend.event_processing import event_accumulator as ea
+from tensorboard.plugins.custom_scalar import layout_pb2
+from tensorboard.plugins.hparams import plugin_data_pb2
+
+import jaxmetrics as jm
+
+WINDOW = 5
+BINS, RANGE = 4, (0.0, 1.0)
+STEPS = [10, 20, 30, 40]
+
+
+def _periods():
+    # Multiples of 1/64 are exact in float32, so bin membership cannot differ from the
+    # float64 reference by rounding. Period 2 is empty; values fall outside RANGE too.
+    rng = np.random.default_rng(0)
+    sizes = [6, 3, 0, 7]
+    return [rng.integers(-8, 72, size=n) / 64.0 for n in sizes]
+
+
+def _reference(periods):
+    """Float64 numpy reference per flush: period stats, window, histogram, EMA."""
+    out, history, ema = [], [], None
+    for vals in periods:
+        for v in vals:
+            ema = v if ema is None else 0.5 * v + 0.5 * ema
+        history.extend(vals.tolist())
+        window = np.array(history[-WINDOW:])
+        counts, _ = np.histogram(vals[(vals >= RANGE[0]) & (vals <= RANGE[1])], BINS, RANGE)
+        ref = {
+            "Train/x/count": len(vals),
+            "Train/x/sum": float(vals.sum()),
+            "Train/x/histogram": counts,
+            "under": int((vals < RANGE[0]).sum()),
+            "over": int((vals > RANGE[1]).sum()),
+        }
+        if len(vals):
+            ref.update(
+                {
+                    "Train/x": vals.mean(),
+                    "Train/x/std": vals.std(),
+                    "Train/x/min": vals.min(),
+                    "Train/x/max": vals.max(),
+                }
+            )
+        if len(window):
+            ref.update(
+                {
+                    "Train/x/window_mean": window.mean(),
+                    "Train/x/window_std": window.std(),
+                    "Train/x/window_min": window.min(),
+                    "Train/x/window_max": window.max(),
+                    "Train/x/window_p50": np.percentile(window, 50),
+                    "Train/x/ema": ema,
+                    "window": window,
+                }
+            )
+        out.append(ref)
+    return out
+
+
+FLOAT_TAGS = [
+    "Train/x",
+    "Train/x/std",
+    "Train/x/min",
+    "Train/x/max",
+    "Train/x/sum",
+    "Train/x/ema",
+    "Train/x/window_mean",
+    "Train/x/window_std",
+    "Train/x/window_min",
+    "Train/x/window_max",
+    "Train/x/window_p50",
+]
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    """One logger writing the same flushes to TensorBoard, JSON lines, memory, console."""
+    root = tmp_path_factory.mktemp("writers")
+    periods = _periods()
+    stats = ("mean", "std", "min", "max", "sum", "count", jm.ema(0.5))
+    stats += (jm.window(WINDOW, percentiles=(50,)), jm.histogram(BINS, RANGE))
+    metrics = jm.Metrics(logged={"x": jm.Logged(stats=stats)}, counters=["updates"])
+    console = io.StringIO()
+    memory = jm.MemoryWriter()
+    writers = [
+        jm.TensorBoardWriter(root / "tb", hparams={"lr": 0.001, "algo": "ppo"}),
+        jm.JsonlWriter(root / "metrics.jsonl"),
+        memory,
+        jm.ConsoleWriter(console, width=200),
+    ]
+    state = metrics.init(1)
+    with jm.Logger(metrics, writers) as logger:
+        for step, vals in zip(STEPS, periods):
+            if len(vals):
+                state = metrics.log(state, {"x": jnp.asarray(vals, jnp.float32)})
+            state = metrics.increment(state, "updates", 2)
+            state = logger.flush(state, step)
+    acc = ea.EventAccumulator(
+        str(root / "tb"), size_guidance={ea.SCALARS: 0, ea.HISTOGRAMS: 0, ea.TENSORS: 0}
+    )
+    acc.Reload()
+    return {
+        "root": root,
+        "ref": _reference(periods),
+        "acc": acc,
+        "memory": memory,
+        "console": console.getvalue(),
+    }
+
+
+def _tb_scalars(acc, tag):
+    return {e.step: e.value for e in acc.Scalars(tag)}
+
+
+def test_tensorboard_scalars_match_float64_reference_and_skip_empty(written):
+    acc, ref = written["acc"], written["ref"]
+    for tag in FLOAT_TAGS:
+        got = _tb_scalars(acc, tag)
+        want = {s: r[tag] for s, r in zip(STEPS, ref) if tag in r}
+        assert sorted(got) == sorted(want), tag  # the empty period is a gap, not a 0
+        for s, v in want.items():
+            np.testing.assert_allclose(got[s], v, rtol=1e-5, atol=1e-6, err_msg=f"{tag}@{s}")
+    assert 30 not in _tb_scalars(acc, "Train/x")
+    assert _tb_scalars(acc, "Train/x/count") == {s: r["Train/x/count"] for s, r in zip(STEPS, ref)}
+    assert _tb_scalars(acc, "Counters/updates") == {s: 2 * (i + 1) for i, s in enumerate(STEPS)}
+
+
+def test_tensorboard_histogram_statistic_has_spec_edges_and_numpy_counts(written):
+    acc, ref = written["acc"], written["ref"]
+    events = {e.step: e.histogram_value for e in acc.Histograms("Train/x/histogram")}
+    want_steps = [s for s, r in zip(STEPS, ref) if r["Train/x/histogram"].sum() > 0]
+    assert sorted(events) == want_steps
+    edges = np.linspace(*RANGE, BINS + 1)
+    for s in want_steps:
+        h, r = events[s], ref[STEPS.index(s)]
+        np.testing.assert_array_equal(h.bucket, r["Train/x/histogram"])
+        np.testing.assert_array_equal(h.bucket_limit, edges[1:])
+        assert (h.min, h.max, h.num) == (edges[0], edges[-1], r["Train/x/histogram"].sum())
+    under = _tb_scalars(acc, "Train/x/histogram/underflow")
+    first = next(i for i, r in enumerate(ref) if r["under"])
+    assert under == {s: r["under"] for s, r in list(zip(STEPS, ref))[first:]}
+
+
+def test_tensorboard_window_histogram_matches_numpy_histogram_of_window(written):
+    acc, ref = written["acc"], written["ref"]
+    events = {e.step: e.histogram_value for e in acc.Histograms("Train/x/window_values")}
+    assert sorted(events) == STEPS  # the window persists through the empty period
+    for s, r in zip(STEPS, ref):
+        h, w = events[s], r["window"]
+        counts, edges = np.histogram(w, bins=30)
+        np.testing.assert_array_equal(h.bucket, counts)
+        np.testing.assert_allclose(h.bucket_limit, edges[1:])
+        np.testing.assert_allclose(
+            [h.min, h.max, h.num, h.sum, h.sum_squares],
+            [w.min(), w.max(), w.size, w.sum(), w @ w],
+            rtol=1e-12,
+        )
+
+
+def test_tensorboard_margin_layout_pairs_each_mean_with_its_std_band(written):
+    acc, ref = written["acc"], written["ref"]
+    (event,) = acc.Tensors("custom_scalars__config__")
+    layout = layout_pb2.Layout()
+    layout.ParseFromString(event.tensor_proto.string_val[0])
+    series = {
+        s.value: (s.lower, s.upper)
+        for c in layout.category
+        for chart in c.chart
+        for s in chart.margin.series
+    }
+    assert series == {"Train/x": ("Margin/Train/x/lower", "Margin/Train/x/upper")}
+    lower, upper = _tb_scalars(acc, "Margin/Train/x/lower"), _tb_scalars(acc, "Margin/Train/x/upper")
+    want = {s: (r["Train/x"], r["Train/x/std"]) for s, r in zip(STEPS, ref) if "Train/x" in r}
+    assert sorted(lower) == sorted(upper) == sorted(want)
+    for s, (m, sd) in want.items():
+        np.testing.assert_allclose([lower[s], upper[s]], [m - sd, m + sd], rtol=1e-5, atol=1e-6)
+
+
+def test_tensorboard_hparams_session_lists_hparams_and_mean_metrics(written):
+    content = written["acc"].PluginTagToContent("hparams")
+    start = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/session_start_info"])
+    hp = start.session_start_info.hparams
+    assert (hp["lr"].number_value, hp["algo"].string_value) == (0.001, "ppo")
+    exp = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/experiment"])
+    assert [m.name.tag for m in exp.experiment.metric_infos] == ["Train/x"]
+    end = plugin_data_pb2.HParamsPluginData.FromString(content["_hparams_/session_end_info"])
+    assert end.HasField("session_end_info")
+
+
+def test_jsonl_round_trip_matches_reference(written):
+    with open(written["root"] / "metrics.jsonl") as f:
+        lines = [json.loads(line) for line in f]
+    assert [d["step"] for d in lines] == STEPS
+    for d, r in zip(lines, written["ref"]):
+        sc = d["scalars"]
+        for tag in FLOAT_TAGS:
+            assert (tag in sc) == (tag in r), tag
+            if tag in r:
+                np.testing.assert_allclose(sc[tag], r[tag], rtol=1e-5, atol=1e-6)
+        assert isinstance(sc["Train/x/count"], int) and sc["Train/x/count"] == r["Train/x/count"]
+        h = d["histograms"].get("Train/x/histogram")
+        if r["Train/x/histogram"].sum() + r["under"] + r["over"] == 0:
+            assert h is None
+        else:
+            assert h["counts"] == r["Train/x/histogram"].tolist()
+            assert (h["underflow"], h["overflow"]) == (r["under"], r["over"])
+            assert h["edges"] == np.linspace(*RANGE, BINS + 1).tolist()
+        assert d["windows"]["Train/x/window_values"] == r["window"].tolist()
+
+
+def test_memory_dataframe_is_long_format_of_every_scalar(written):
+    df, ref = written["memory"].dataframe(), written["ref"]
+    assert list(df.columns) == ["step", "tag", "value"]
+    assert [str(t) for t in df.dtypes] == ["int64", "object", "float64"]
+    for tag in FLOAT_TAGS:
+        got = df[df.tag == tag]
+        want = [(s, r[tag]) for s, r in zip(STEPS, ref) if tag in r]
+        assert got.step.tolist() == [s for s, _ in want]
+        np.testing.assert_allclose(got.value, [v for _, v in want], rtol=1e-5, atol=1e-6)
+    records = written["memory"].records
+    np.testing.assert_array_equal(records[0].windows["Train/x/window_values"], ref[0]["window"])
+
+
+def test_memory_plot_draws_each_tag_with_its_std_band(written):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ax = written["memory"].plot("Train/x", "Train/x/window_mean")
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert sorted(lines) == ["Train/x", "Train/x/window_mean"]
+    ref = written["ref"]
+    np.testing.assert_allclose(
+        lines["Train/x"].get_ydata(), [r["Train/x"] for r in ref if "Train/x" in r], rtol=1e-5
+    )
+    assert len(ax.collections) == 1  # only Train/x has a recorded std
+    with pytest.raises(ValueError, match="Train/nope"):
+        written["memory"].plot("Train/nope")
+    plt.close("all")
+
+
+def test_console_prints_a_row_per_metric_per_flush(written):
+    out = written["console"]
+    assert [line.split()[1] for line in out.splitlines() if line.startswith("step")] == [
+        str(s) for s in STEPS
+    ]
+    first = next(line for line in out.splitlines() if line.startswith("Train/x"))
+    cells = first.split()[1:6]
+    want = [written["ref"][0][t] for t in FLOAT_TAGS[:4]]
+    np.testing.assert_allclose([float(c) for c in cells[:4]], want, rtol=1e-3)
+    assert cells[4] == "6"
+
+
+def test_nonfinite_counts_appear_only_from_the_first_nonfinite_value(tmp_path):
+    metrics = jm.Metrics(logged=["x"])
+    memory = jm.MemoryWriter()
+    state = metrics.init(1)
+    with jm.Logger(metrics, [memory, jm.TensorBoardWriter(tmp_path)]) as logger:
+        for step, v in enumerate([1.0, np.nan, 2.0]):
+            state = metrics.log(state, {"x": jnp.float32(v)})
+            if step == 2:
+                with pytest.warns(RuntimeWarning, match="'x': 1 non-finite"):
+                    state = logger.flush(state, step)
+            else:
+                state = logger.flush(state, step)
+    acc = ea.EventAccumulator(str(tmp_path))
+    acc.Reload()
+    assert _tb_scalars(acc, "Train/x/nonfinite") == {1: 1, 2: 0}
+    assert _tb_scalars(acc, "Train/x") == {0: 1.0, 2: 2.0}  # the NaN-only period is a gap
+    df = memory.dataframe()
+    assert df[df.tag == "Train/x/nonfinite"].step.tolist() == [1, 2]
+
+
+@pytest.mark.parametrize("make", [jm.TensorBoardWriter, jm.JsonlWriter])
+def test_invalid_log_path_fails_at_writer_creation_naming_it(tmp_path, make):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    bad = [a_file / "run", tmp_path / "bad\0name"]
+    bad.append(a_file if make is jm.TensorBoardWriter else tmp_path)  # a file / a directory
+    for path in bad:
+        with pytest.raises(ValueError) as e:
+            make(path)
+        assert repr(os.fspath(path))[1:-1] in str(e.value)
+    with pytest.raises(ValueError, match="non-empty"):
+        make("")
+
+
+def test_band_tag_colliding_with_a_metric_tag_is_rejected_at_logger_creation(tmp_path):
+    metrics = jm.Metrics(terms={"Train/x/lower": lambda s: s}, logged=["x"], episode_prefix="Margin")
+    with pytest.raises(ValueError, match="Margin/Train/x/lower"):
+        jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
+
+
+def test_logger_rejects_objects_that_are_not_writers():
+    metrics = jm.Metrics(logged=["x"])
+    with pytest.raises(TypeError, match="open\\(tags\\), write\\(record\\)"):
+        jm.Logger(metrics, [print])
+    with pytest.raises(TypeError, match="wrap the writer"):
+        jm.Logger(metrics, jm.MemoryWriter())
+
+
+def test_import_jaxmetrics_does_not_import_writer_backends():
+    code = (
+        "import sys, jaxmetrics\n"
+        "heavy = [m for m in ('tensorboardX', 'tensorboard', 'rich', 'pandas', 'matplotlib')"
+        " if m in sys.modules]\n"
+        "print(heavy)"
+    )
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root, JAX_PLATFORMS="cpu")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
