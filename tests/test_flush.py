@@ -1,0 +1,264 @@
+"""The host flush: non-blocking, drained in order by close(), durable across SIGKILL,
+deterministic non-finite errors, counters per second, timers, vmapped runs."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from tensorboard.backend.event_processing import event_accumulator as ea
+
+import jaxmetrics as jm
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+class GatedSink:
+    """A writer whose write blocks until the test opens the gate (a slow disk)."""
+
+    def __init__(self, gate: threading.Event):
+        self.gate = gate
+        self.steps: list[int] = []
+        self.closed = False
+
+    def open(self, tags):
+        pass
+
+    def write(self, record):
+        if not self.gate.wait(timeout=60):
+            raise TimeoutError("the test never opened the gate")
+        self.steps.append(record.step)
+
+    def close(self):
+        self.closed = True
+
+
+def _log_metrics(**kw):
+    return jm.Metrics(logged={"x": jm.Logged(**kw)})
+
+
+def test_flush_returns_before_the_writer_finishes_and_close_waits_for_it():
+    metrics = _log_metrics()
+    gate = threading.Event()
+    sink = GatedSink(gate)
+    logger = jm.Logger(metrics, [sink])
+    state = metrics.init(1)
+    for step in range(3):
+        state = logger.flush(metrics.log(state, {"x": jnp.float32(step)}), step)
+    assert sink.steps == []  # every flush returned while the sink was still blocked
+    closer = threading.Thread(target=logger.close)
+    closer.start()
+    closer.join(timeout=0.5)
+    assert closer.is_alive() and not sink.closed  # close() is waiting for the sink
+    gate.set()
+    closer.join(timeout=60)
+    assert not closer.is_alive()
+    assert sink.steps == [0, 1, 2] and sink.closed
+
+
+def test_flush_blocks_only_when_max_pending_flushes_are_queued():
+    metrics = _log_metrics()
+    gate = threading.Event()
+    sink = GatedSink(gate)
+    logger = jm.Logger(metrics, [sink], max_pending=1)
+    state = logger.flush(metrics.init(1), 0)
+    second = threading.Thread(target=logger.flush, args=(state, 1))
+    second.start()
+    second.join(timeout=0.5)
+    assert second.is_alive()  # back-pressure: the one pending slot is taken
+    gate.set()
+    second.join(timeout=60)
+    logger.close()
+    assert sink.steps == [0, 1]
+
+
+def test_returned_state_is_reset_and_keeps_windows_and_counters():
+    metrics = jm.Metrics(logged={"x": jm.Logged(stats=("mean", "count", jm.window(3)))})
+    memory = jm.MemoryWriter()
+    with jm.Logger(metrics, [memory]) as logger:
+        state = metrics.log(metrics.init(1), {"x": jnp.array([1.0, 2.0], jnp.float32)})
+        state = logger.flush(state, 0)
+        state = logger.flush(metrics.log(state, {"x": jnp.float32(4.0)}), 1)
+    s0, s1 = (r.scalars for r in memory.records)
+    assert (s0["Train/x"], s0["Train/x/count"]) == (1.5, 2)
+    assert (s1["Train/x"], s1["Train/x/count"]) == (4.0, 1)  # period reset
+    assert s1["Train/x/window_mean"] == pytest.approx(7.0 / 3.0)  # window carried on
+
+
+_CHILD = """
+import sys, time
+import jax.numpy as jnp
+import jaxmetrics as jm
+
+root, n = sys.argv[1], int(sys.argv[2])
+metrics = jm.Metrics(logged=["x"])
+logger = jm.Logger(metrics, [jm.TensorBoardWriter(root + "/tb"), jm.JsonlWriter(root + "/m.jsonl")])
+state = metrics.init(1)
+step = 0
+while True:
+    state = logger.flush(metrics.log(state, {"x": jnp.float32(step * 0.5)}), step)
+    step += 1
+    if step == n:
+        logger.wait()
+        print("READY", flush=True)
+    if step > n:
+        time.sleep(0.005)
+"""
+
+
+def test_everything_flushed_before_sigkill_is_readable(tmp_path):
+    n = 20
+    env = dict(os.environ, PYTHONPATH=ROOT, JAX_PLATFORMS="cpu")
+    child = subprocess.Popen(
+        [sys.executable, "-c", _CHILD, str(tmp_path), str(n)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        line = child.stdout.readline()
+        assert line.strip() == "READY", child.stderr.read()
+        time.sleep(0.3)  # let it keep flushing, so the kill lands mid-stream
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.communicate(timeout=60)
+    assert child.returncode == -signal.SIGKILL
+
+    acc = ea.EventAccumulator(str(tmp_path / "tb"), size_guidance={ea.SCALARS: 0})
+    acc.Reload()
+    tb = [(e.step, e.value) for e in acc.Scalars("Train/x")]
+    with open(tmp_path / "m.jsonl", "rb") as f:
+        raw = f.read().split(b"\n")
+    # One unbuffered write per line: at most the last line can be cut by the kill.
+    lines = [json.loads(x) for x in raw[:-1]]
+    js = [(d["step"], d["scalars"]["Train/x"]) for d in lines]
+    for got in (tb, js):
+        steps = [s for s, _ in got]
+        assert steps == list(range(len(steps))) and len(steps) >= n  # every flushed step, in order
+        np.testing.assert_array_equal([v for _, v in got], np.arange(len(steps)) * 0.5)
+
+
+def test_nonfinite_raise_surfaces_at_the_next_flush_without_losing_data(tmp_path):
+    metrics = _log_metrics(nonfinite="raise")
+    path = tmp_path / "m.jsonl"
+    logger = jm.Logger(metrics, [jm.JsonlWriter(path)])
+    state = logger.flush(metrics.log(metrics.init(1), {"x": jnp.float32(np.nan)}), 0)
+    with pytest.raises(jm.NonFiniteError, match="step 0: .*'x': 1 non-finite"):
+        logger.flush(metrics.log(state, {"x": jnp.float32(2.0)}), 1)
+    logger.close()
+    with open(path) as f:
+        steps = [(d["step"], d["scalars"].get("Train/x")) for d in map(json.loads, f)]
+    assert steps == [(0, None), (1, 2.0)]  # both flushes were written
+
+
+def test_nonfinite_raise_in_the_last_flush_surfaces_at_close(tmp_path):
+    metrics = _log_metrics(nonfinite="raise")
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [memory])
+    state = logger.flush(metrics.log(metrics.init(1), {"x": jnp.float32(1.0)}), 0)
+    logger.flush(metrics.log(state, {"x": jnp.float32(np.inf)}), 1)
+    with pytest.raises(jm.NonFiniteError, match="step 1: "):
+        logger.close()
+    assert [r.step for r in memory.records] == [0, 1]
+
+
+def test_writer_errors_surface_on_the_callers_thread():
+    class Broken:
+        def open(self, tags):
+            pass
+
+        def write(self, record):
+            raise OSError("disk full")
+
+        def close(self):
+            pass
+
+    metrics = _log_metrics()
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [Broken(), memory])
+    logger.flush(metrics.init(1), 7)
+    with pytest.raises(RuntimeError, match="failed at step 7: OSError\\('disk full'\\)"):
+        logger.wait()
+    logger.close()
+    assert [r.step for r in memory.records] == [7]  # the other writers still got it
+
+
+def test_counters_per_second_are_growth_over_host_time_between_flushes():
+    metrics = jm.Metrics(terms={"r": lambda x: x}, counters=["updates"])
+    memory = jm.MemoryWriter()
+    state = metrics.init(4)
+    with jm.Logger(metrics, [memory]) as logger:
+        for it in range(3):
+            state = metrics.update(state, jnp.ones(4), jnp.arange(4) < it)
+            state = metrics.increment(state, "updates", 5)
+            state = logger.flush(state, it)
+    r = memory.records
+    assert "Counters/env_steps/per_sec" not in r[0].scalars  # needs two records
+    for prev, cur in zip(r, r[1:]):
+        dt = cur.wall_time - prev.wall_time
+        for c, inc in (("env_steps", 4), ("updates", 5)):
+            assert cur.scalars[f"Counters/{c}"] - prev.scalars[f"Counters/{c}"] == inc
+            assert cur.scalars[f"Counters/{c}/per_sec"] == pytest.approx(inc / dt)
+    assert [x.scalars["Counters/episodes"] for x in r] == [0, 1, 3]
+
+
+def test_timers_report_seconds_per_period_and_zero_once_idle():
+    metrics = _log_metrics()
+    memory = jm.MemoryWriter()
+    state = metrics.init(1)
+    with jm.Logger(metrics, [memory]) as logger:
+        with logger.timer("rollout"):
+            time.sleep(0.05)
+        with logger.timer("rollout"):
+            time.sleep(0.05)
+        state = logger.flush(state, 0)
+        state = logger.flush(state, 1)
+    first, second = (x.scalars for x in memory.records)
+    assert first["Timers/rollout"] >= 0.1
+    assert second["Timers/rollout"] == 0.0
+
+
+def test_timer_colliding_with_a_metric_tag_is_rejected_when_named():
+    with jm.Logger(_log_metrics(), [jm.MemoryWriter()], timer_prefix="Train") as logger:
+        with pytest.raises(ValueError, match="tag collision.*'Train/x'"):
+            logger.timer("x")
+
+
+def test_vmapped_seeds_flush_each_to_its_own_run():
+    metrics = jm.Metrics(logged=["x"])
+    memories = [jm.MemoryWriter() for _ in range(3)]
+    seeds = jnp.arange(3, dtype=jnp.float32)
+    state = jax.vmap(lambda _: metrics.init(1))(seeds)
+    with jm.Logger(metrics, lambda run: [memories[run]], runs=3) as logger:
+        for step in range(2):
+            log = jax.vmap(lambda s, v: metrics.log(s, {"x": v}))
+            state = logger.flush(log(state, seeds * 10 + step), jnp.array([5, 6, 7]) + step)
+    for run, memory in enumerate(memories):
+        assert [(r.step, r.scalars["Train/x"]) for r in memory.records] == [
+            (5 + run, 10.0 * run),
+            (6 + run, 10.0 * run + 1),
+        ]
+
+
+def test_flush_rejects_misuse_with_the_fix_in_the_message():
+    metrics = _log_metrics()
+    with jm.Logger(metrics, [jm.MemoryWriter()]) as logger:
+        batched = jax.vmap(lambda _: metrics.init(1))(jnp.arange(3))
+        with pytest.raises(ValueError, match="runs=3"):
+            logger.flush(batched, 0)
+        with pytest.raises(TypeError, match="logger.emit"):
+            jax.jit(lambda s: logger.flush(s, 0))(metrics.init(1))
+        with pytest.raises(TypeError, match="step must be an int"):
+            logger.flush(metrics.init(1), 1.5)
+    with pytest.raises(RuntimeError, match="closed"):
+        logger.flush(metrics.init(1), 0)
+    with pytest.raises(TypeError, match="function run -> writers"):
+        jm.Logger(metrics, [jm.MemoryWriter()], runs=2)
