@@ -12,6 +12,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from ._numerics import kahan_add
+
 ORDER = ("mean", "std", "sum", "max", "min", "last")
 
 
@@ -81,15 +83,15 @@ def step(
     welford = slice(b("mean").start, b("std").stop)
     xw, fw = x[welford], fold[welford]
     nw = jnp.maximum(steps[welford], 1).astype(plan.dtype)
-    delta = jnp.where(fw, xw - ep.mean, 0)
+    # An infinite mean stays infinite under finite steps (as numpy's mean does) instead of
+    # turning into NaN through inf - inf; only "propagate" lets infinities in at all.
+    delta = jnp.where(fw & ~(jnp.isinf(ep.mean) & jnp.isfinite(xw)), xw - ep.mean, 0)
     mean = ep.mean + delta / nw
     std_in_w = slice(b("std").start - welford.start, b("std").stop - welford.start)
     m2 = ep.m2 + jnp.where(fw[std_in_w], delta[std_in_w] * (xw - mean)[std_in_w], 0)
 
     xs, fs = x[b("sum")], fold[b("sum")]
-    y = jnp.where(fs, xs, 0) - ep.sum_c
-    t = ep.sum + y
-    sum_c = (t - ep.sum) - y
+    t, sum_c = kahan_add(ep.sum, ep.sum_c, jnp.where(fs, xs, 0))
 
     vmax = jnp.where(fold[b("max")], jnp.maximum(ep.max, x[b("max")]), ep.max)
     vmin = jnp.where(fold[b("min")], jnp.minimum(ep.min, x[b("min")]), ep.min)

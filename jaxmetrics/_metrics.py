@@ -87,7 +87,7 @@ def _flatten_terms(terms: Mapping[str, Any], policy: str) -> tuple[list[Term], l
             reduces = {o: t.reduce.get(o, "mean") for o in outputs}
         else:
             reduces = {o: t.reduce for o in outputs}
-        for o, r in reduces.items():
+        for r in reduces.values():
             if r not in EPISODE_REDUCTIONS:
                 raise ValueError(
                     f"{where}: unknown episode reduction {r!r}; expected one of "
@@ -193,9 +193,7 @@ class Metrics:
         self.dtype = dt
 
         # Episode rows sorted by reduction (stable): each reduction is one block.
-        order = sorted(
-            range(len(ep_specs)), key=lambda i: _episode.ORDER.index(ep_specs[i].reduce)
-        )
+        order = sorted(range(len(ep_specs)), key=lambda i: _episode.ORDER.index(ep_specs[i].reduce))
         self._ep_rows = tuple(ep_specs[i] for i in order)
         self._ep_defined = tuple(ep_specs)  # definition order, for the tag table
         self._ep_index = {s.name: i for i, s in enumerate(self._ep_rows)}
@@ -362,7 +360,9 @@ class Metrics:
         )
         ended = done[None, :] & any_step
         ok = ended & (jnp.isfinite(values) | prop)
-        bad = jnp.sum(~finite, axis=1, dtype=jnp.int32) + jnp.sum(ended & ~ok, axis=1, dtype=jnp.int32)
+        bad = jnp.sum(~finite, axis=1, dtype=jnp.int32) + jnp.sum(
+            ended & ~ok, axis=1, dtype=jnp.int32
+        )
         assert self._ep_plan is not None
         episodes = _stream.add(self._ep_plan, state.episodes, values, ok)
         episodes = _stream.add_nonfinite(episodes, bad)
@@ -384,7 +384,9 @@ class Metrics:
         """
         state = self._check_state(state, "log")
         if not isinstance(values, Mapping):
-            raise TypeError(f"log: values must be a dict name -> value, got {type(values).__name__}.")
+            raise TypeError(
+                f"log: values must be a dict name -> value, got {type(values).__name__}."
+            )
         unknown = sorted(set(values) - set(self._lg_index))
         if unknown:
             raise ValueError(
@@ -398,7 +400,9 @@ class Metrics:
         for name, v in values.items():
             a = jnp.asarray(v)
             if not _is_numeric(a.dtype):
-                raise TypeError(f"log: {name!r} has dtype {a.dtype}; log float, int or bool values.")
+                raise TypeError(
+                    f"log: {name!r} has dtype {a.dtype}; log float, int or bool values."
+                )
             flat[name] = a.reshape(-1).astype(self.dtype)
         width = max(a.shape[0] for a in flat.values())
         rows = len(self._lg_plan.rows)
@@ -425,7 +429,9 @@ class Metrics:
         assert state.counters is not None
         by = jnp.asarray(by)
         if not jnp.issubdtype(by.dtype, jnp.integer) or by.shape != ():
-            raise TypeError(f"increment: `by` must be a scalar int, got {by.dtype}{list(by.shape)}.")
+            raise TypeError(
+                f"increment: `by` must be a scalar int, got {by.dtype}{list(by.shape)}."
+            )
         inc = jnp.zeros((len(self.counter_names),), jnp.uint32)
         inc = inc.at[self.counter_names.index(name)].set(by.astype(jnp.uint32))
         return state._replace(counters=_count.add(state.counters, inc))
@@ -435,9 +441,7 @@ class Metrics:
         running episodes carry on."""
         state = self._check_state(state, "reset_period")
         return state._replace(
-            episodes=_stream.reset_period(self._ep_plan, state.episodes)
-            if self._ep_plan
-            else None,
+            episodes=_stream.reset_period(self._ep_plan, state.episodes) if self._ep_plan else None,
             logged=_stream.reset_period(self._lg_plan, state.logged) if self._lg_plan else None,
         )
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from . import _count
 from ._count import Count
+from ._numerics import kahan_add
 from ._spec import MetricSpec
 
 
@@ -86,9 +87,7 @@ class StreamPlan:
         windows = tuple(
             WindowGroup(
                 n,
-                tuple(
-                    i for i, r in enumerate(rows) if r.stats.window and r.stats.window.size == n
-                ),
+                tuple(i for i, r in enumerate(rows) if r.stats.window and r.stats.window.size == n),
             )
             for n in sizes
         )
@@ -138,13 +137,6 @@ def init(plan: StreamPlan) -> StreamState:
     )
 
 
-def _kahan_add(s: jax.Array, c: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-    # Compensated summation: c carries the low-order bits lost by s (true sum = s - c).
-    y = x - c
-    t = s + y
-    return t, (t - s) - y
-
-
 def _rank(mask: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Arrival rank of each masked-in column of each row, and the number per row."""
     m = mask.astype(jnp.int32)
@@ -177,8 +169,8 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     frac = jnp.where(n > 0, kf / jnp.maximum(n, 1), 0)
     delta = mb + (shift - s.mean)
     mean = s.mean + delta * frac
-    m2, m2_c = _kahan_add(s.m2, s.m2_c, m2b + delta * delta * na * frac)
-    total, total_c = _kahan_add(s.sum, s.sum_c, jnp.sum(jnp.where(mask, values, 0), axis=1))
+    m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + delta * delta * na * frac)
+    total, total_c = kahan_add(s.sum, s.sum_c, jnp.sum(jnp.where(mask, values, 0), axis=1))
     vmin = jnp.minimum(s.min, jnp.min(jnp.where(mask, values, jnp.inf), axis=1))
     vmax = jnp.maximum(s.max, jnp.max(jnp.where(mask, values, -jnp.inf), axis=1))
 
@@ -280,10 +272,10 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
     n = na + nb
     frac = jnp.where(n > 0, nb / jnp.maximum(n, 1), 0)
     delta = jnp.where(nb > 0, b.mean - a.mean, 0)
-    m2, m2_c = _kahan_add(a.m2, a.m2_c, b.m2 + delta * delta * na * frac)
-    m2, m2_c = _kahan_add(m2, m2_c, -b.m2_c)
-    total, total_c = _kahan_add(a.sum, a.sum_c, b.sum)
-    total, total_c = _kahan_add(total, total_c, -b.sum_c)
+    m2, m2_c = kahan_add(a.m2, a.m2_c, b.m2 + delta * delta * na * frac)
+    m2, m2_c = kahan_add(m2, m2_c, -b.m2_c)
+    total, total_c = kahan_add(a.sum, a.sum_c, b.sum)
+    total, total_c = kahan_add(total, total_c, -b.sum_c)
     wsum = a.ema_w + b.ema_w
     ema = jnp.where(
         wsum > 0, (a.ema_w * a.ema + b.ema_w * b.ema) / jnp.maximum(wsum, 1), jnp.zeros_like(a.ema)

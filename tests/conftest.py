@@ -11,6 +11,8 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 # Compiles of Brax/MJX rollouts dominate the suite; a persistent cache makes reruns cheap.
 jax.config.update(
     "jax_compilation_cache_dir",
-    os.environ.get("JAXMETRICS_TEST_CACHE", os.path.join(os.path.dirname(__file__), "..", ".jax_cache")),
+    os.environ.get(
+        "JAXMETRICS_TEST_CACHE", os.path.join(os.path.dirname(__file__), "..", ".jax_cache")
+    ),
 )
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

@@ -1,0 +1,319 @@
+"""Every episode reduction and every report statistic against the float64 Python reference.
+
+Values, `done` patterns and flush cadences are random (hypothesis); the report is compared
+after *every* step, under `jit` + `lax.scan`, with `reset_period` applied through `lax.cond`.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from reference import RefEpisodes, RefStream
+
+import jaxmetrics as jm
+
+REDUCTIONS = ("mean", "sum", "max", "min", "last", "std")
+E, T = 5, 10  # 5 envs finishing at once overflow the window of 3
+EMA_C = 0.3
+WINDOW = 3
+PCTS = (0.0, 25.0, 50.0, 90.0, 100.0)
+HIST = (8, -50.0, 50.0)
+STATS = (
+    "mean",
+    "std",
+    "min",
+    "max",
+    "sum",
+    "count",
+    jm.ema(EMA_C),
+    jm.window(WINDOW, PCTS),
+    jm.histogram(HIST[0], HIST[1:]),
+)
+
+
+def make_metrics(nonfinite="skip"):
+    terms = {
+        f"r_{red}": jm.Term(lambda x, k: x[k], reduce=red, stats=STATS, params={"k": k})
+        for k, red in enumerate(REDUCTIONS)
+    }
+    return jm.Metrics(terms=terms, logged=["a", "b"], nonfinite=nonfinite)
+
+
+METRICS = {p: make_metrics(p) for p in ("skip", "propagate")}
+
+
+def _slice(report, t):
+    return {k: jax.tree.map(lambda a: a[t], v) for k, v in report.items()}
+
+
+def assert_stat_close(got, want, where, propagate=False):
+    if isinstance(got, jm.Count):
+        np.testing.assert_array_equal(got, want, err_msg=where)
+        return
+    got = np.asarray(got, np.float64)
+    want = np.asarray(want, np.float64)
+    if propagate:
+        np.testing.assert_array_equal(~np.isfinite(got), ~np.isfinite(want), err_msg=where)
+        ok = np.isfinite(want)
+        got, want = got[ok], want[ok]
+    finite = np.abs(want[np.isfinite(want)])
+    scale = max(1.0, float(finite.max(initial=0.0)))
+    np.testing.assert_allclose(
+        got, want, rtol=2e-5, atol=2e-5 * scale, equal_nan=True, err_msg=where
+    )
+
+
+def compare(metrics, host, ref_report, prefix, name, propagate=False, only=None):
+    for stat, want in ref_report.items():
+        if only is not None and stat not in only:
+            continue
+        tag = f"{prefix}/{name}" if stat == "mean" else f"{prefix}/{name}/{stat}"
+        if stat == "histogram" and propagate:
+            continue
+        assert tag in host, tag
+        assert_stat_close(host[tag], want, tag, propagate)
+
+
+DEFAULT_LOGGED_STATS = ("mean", "std", "min", "max", "count", "nonfinite")
+grid = st.integers(-800, 800).map(lambda k: k / 8 + 1 / 16)  # never on a histogram edge
+
+
+@st.composite
+def rollouts(draw, nonfinite=False):
+    vals = draw(st.lists(grid, min_size=T * 6 * E, max_size=T * 6 * E))
+    xs = np.asarray(vals, np.float32).reshape(T, 6, E)
+    if nonfinite:
+        bad = draw(
+            st.lists(
+                st.sampled_from([0.0, np.nan, np.inf, -np.inf]),
+                min_size=T * 6 * E,
+                max_size=T * 6 * E,
+            )
+        )
+        bad = np.asarray(bad, np.float32).reshape(T, 6, E)
+        use = draw(st.lists(st.booleans(), min_size=T * 6 * E, max_size=T * 6 * E))
+        use = np.asarray(use).reshape(T, 6, E) & (np.random.default_rng(0).random((T, 6, E)) < 0.3)
+        xs = np.where(use & (bad != 0), bad, xs)
+    pattern = draw(st.sampled_from(["random", "all", "none", "env0_every_step", "sparse"]))
+    if pattern == "random":
+        dones = np.asarray(draw(st.lists(st.booleans(), min_size=T * E, max_size=T * E)))
+    elif pattern == "all":
+        dones = np.ones(T * E, bool)
+    elif pattern == "none":
+        dones = np.zeros(T * E, bool)
+    elif pattern == "env0_every_step":
+        dones = np.tile(np.arange(E) == 0, T)
+    else:
+        dones = np.asarray(draw(st.lists(st.integers(0, 7), min_size=T * E, max_size=T * E))) == 0
+    flushes = np.asarray(draw(st.lists(st.booleans(), min_size=T, max_size=T)))
+    return xs, dones.reshape(T, E), flushes
+
+
+_RUN_CACHE: dict[str, object] = {}
+
+
+def run_jitted(policy, xs, dones, flushes):
+    m = METRICS[policy]
+    if policy not in _RUN_CACHE:
+
+        def body(state, inp):
+            x, d, flush = inp
+            state = m.update(state, x, d)
+            report = m.compute(state)
+            state = jax.lax.cond(flush, m.reset_period, lambda s: s, state)
+            return state, report
+
+        _RUN_CACHE[policy] = jax.jit(lambda xs, d, f: jax.lax.scan(body, m.init(E), (xs, d, f))[1])
+    out = _RUN_CACHE[policy](jnp.asarray(xs), jnp.asarray(dones), jnp.asarray(flushes))
+    return jax.device_get(out)
+
+
+def check_rollout(policy, xs, dones, flushes):
+    m = METRICS[policy]
+    reports = run_jitted(policy, xs, dones, flushes)
+    ref = RefEpisodes(
+        E,
+        {f"r_{r}": r for r in REDUCTIONS},
+        skip=policy != "propagate",
+        ema_coeff=EMA_C,
+        window=WINDOW,
+        percentiles=PCTS,
+        hist=HIST,
+    )
+    for t in range(T):
+        ref.step({f"r_{r}": xs[t, k] for k, r in enumerate(REDUCTIONS)}, dones[t])
+        host = m.to_host(_slice(reports, t))
+        for name, stream in ref.streams.items():
+            compare(m, host, stream.report(), "Episode_Metrics", name, policy == "propagate")
+        assert host["Counters/episodes"] == int(dones[: t + 1].sum())
+        assert host["Counters/env_steps"] == (t + 1) * E
+        if flushes[t]:
+            ref.reset_period()
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(rollouts())
+def test_episode_reductions_and_report_stats_match_reference(data):
+    check_rollout("skip", *data)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(rollouts(nonfinite=True))
+def test_nonfinite_values_skipped_and_counted(data):
+    check_rollout("skip", *data)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(rollouts(nonfinite=True))
+def test_nonfinite_propagate_policy_makes_statistics_nonfinite(data):
+    check_rollout("propagate", *data)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    st.lists(
+        st.tuples(grid, st.lists(grid, min_size=3, max_size=3), st.booleans()),
+        min_size=1,
+        max_size=12,
+    )
+)
+def test_logged_values_match_reference(steps):
+    m = METRICS["skip"]
+    log = jax.jit(m.log)
+    compute = jax.jit(m.compute)
+    reset = jax.jit(m.reset_period)
+    spec = m.metric_specs["a"].stats
+    assert spec.window is None  # logged values here use the default statistics
+    ref = {n: RefStream() for n in ("a", "b")}
+    state = m.init(E)
+    for a, b, flush in steps:
+        state = log(state, {"a": jnp.float32(a), "b": jnp.asarray(b, jnp.float32)})
+        ref["a"].add(a)
+        for v in b:
+            ref["b"].add(v)
+        host = m.to_host(compute(state))
+        for n, r in ref.items():
+            compare(m, host, r.report(), "Train", n, only=DEFAULT_LOGGED_STATS)
+        if flush:
+            state = reset(state)
+            for r in ref.values():
+                r.reset_period()
+
+
+def test_logging_one_name_leaves_the_others_untouched():
+    m = jm.Metrics(logged=["a", "b"])
+    state = m.log(m.init(0), {"a": 1.0, "b": 2.0})
+    state = m.log(state, {"a": 3.0})
+    host = m.to_host(m.compute(state))
+    assert host["Train/a"] == 2.0 and host["Train/a/count"] == 2
+    assert host["Train/b"] == 2.0 and host["Train/b/count"] == 1
+
+
+def test_logged_nonfinite_counted_and_left_out():
+    m = jm.Metrics(logged=["loss"])
+    state = m.log(m.init(0), {"loss": jnp.asarray([1.0, jnp.nan, 3.0, jnp.inf])})
+    host = m.to_host(m.compute(state))
+    assert host["Train/loss"] == 2.0
+    assert host["Train/loss/count"] == 2
+    assert host["Train/loss/nonfinite"] == 2
+
+
+def test_mean_of_episodes_not_mean_of_batch_means():
+    # DESIGN.md: 3 episodes of 0 then 1 of 1 is 0.25 (mjlab's logger says 0.5).
+    m = jm.Metrics(terms={"success": jm.Term(lambda s: s, reduce="last")})
+    state = m.init(3)
+    state = m.update(state, jnp.zeros(3), jnp.ones(3, bool))
+    state = m.update(state, jnp.asarray([1.0, 0.0, 0.0]), jnp.asarray([True, False, False]))
+    host = m.to_host(m.compute(state))
+    assert host["Episode_Metrics/success"] == 0.25
+    assert host["Episode_Metrics/success/count"] == 4
+
+
+def test_window_keeps_last_n_in_env_order_when_4096_envs_finish_at_once():
+    n_env = 4096
+    m = jm.Metrics(
+        terms={
+            "x": jm.Term(
+                lambda s: s, reduce="last", stats=(jm.window(100, (10, 50, 90)), jm.ema(0.01))
+            )
+        }
+    )
+    rng = np.random.default_rng(1)
+    vals = [rng.normal(size=n_env).astype(np.float32) for _ in range(2)]
+    state = m.init(n_env)
+    update = jax.jit(m.update)
+    ref = RefStream(ema_coeff=0.01, window=100, percentiles=(10, 50, 90))
+    for v in vals:
+        state = update(state, jnp.asarray(v), jnp.ones(n_env, bool))
+        for e in range(n_env):
+            ref.add(float(v[e]))
+    host = m.to_host(m.compute(state))
+    want = ref.report()
+    np.testing.assert_array_equal(host["Episode_Metrics/x/window_values"], vals[1][-100:])
+    for stat in ("window_mean", "window_std", "window_p10", "window_p50", "window_p90", "ema"):
+        assert math.isclose(
+            host[f"Episode_Metrics/x/{stat}"], want[stat], rel_tol=1e-5, abs_tol=1e-6
+        ), stat
+
+
+def test_ema_seeded_by_first_value_and_carried_across_periods():
+    m = jm.Metrics(logged={"v": jm.Logged(stats=(jm.ema(0.5), "mean"))})
+    state = m.log(m.init(0), {"v": 4.0})
+    assert m.to_host(m.compute(state))["Train/v/ema"] == 4.0  # seeded, no bias correction
+    state = m.reset_period(state)
+    host = m.to_host(m.compute(state))
+    assert host["Train/v/ema"] == 4.0 and math.isnan(host["Train/v"])
+    state = m.log(state, {"v": 2.0})
+    assert m.to_host(m.compute(state))["Train/v/ema"] == 3.0
+
+
+def test_ema_coefficient_one_tracks_the_last_value():
+    m = jm.Metrics(logged={"v": jm.Logged(stats=(jm.ema(1.0),))})
+    state = m.log(m.init(0), {"v": jnp.asarray([1.0, 5.0, 7.0])})
+    assert m.to_host(m.compute(state))["Train/v/ema"] == 7.0
+
+
+def test_window_persists_across_periods():
+    m = jm.Metrics(logged={"v": jm.Logged(stats=("count", jm.window(4)))})
+    state = m.init(0)
+    for v in range(6):
+        state = m.reset_period(m.log(state, {"v": float(v)}))
+    host = m.to_host(m.compute(state))
+    assert host["Train/v/count"] == 0
+    np.testing.assert_array_equal(host["Train/v/window_values"], [2.0, 3.0, 4.0, 5.0])
+
+
+def test_empty_period_reports_count_zero_and_nan():
+    m = jm.Metrics(
+        terms={
+            "x": jm.Term(
+                lambda s: s,
+                stats=("mean", "std", "min", "max", "sum", "count", jm.window(3, (50,))),
+            )
+        }
+    )
+    host = m.to_host(m.compute(m.init(2)))
+    assert host["Episode_Metrics/x/count"] == 0
+    assert host["Episode_Metrics/x/sum"] == 0.0
+    for stat in ("", "/std", "/min", "/max", "/window_mean", "/window_p50"):
+        assert math.isnan(host[f"Episode_Metrics/x{stat}"]), stat
+
+
+def test_running_episodes_reported_only_when_asked():
+    m = jm.Metrics(terms={"x": jm.Term(lambda s: s, reduce="sum")})
+    state = m.update(m.init(2), jnp.asarray([1.0, 2.0]), jnp.asarray([False, False]))
+    assert "Episode_Metrics/x/running" not in m.compute(state)
+    host = m.to_host(m.compute(state, include_running=True))
+    assert host["Episode_Metrics/x/running"] == 1.5
+    assert math.isnan(host["Episode_Metrics/x"])
+
+
+@pytest.mark.parametrize("dtype", [jnp.bool_, jnp.int32, jnp.uint8, jnp.float16, jnp.float32])
+def test_bool_and_int_outputs_accepted(dtype):
+    m = jm.Metrics(terms={"x": jm.Term(lambda s: s.astype(dtype), reduce="sum")})
+    state = m.update(m.init(3), jnp.asarray([1.0, 0.0, 1.0]), jnp.ones(3, bool))
+    assert m.to_host(m.compute(state))["Episode_Metrics/x/max"] == 1.0
