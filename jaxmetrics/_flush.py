@@ -148,6 +148,15 @@ class Logger(AbstractContextManager):
     lost) or by `wait()`/`close()`; emitted ones by the next `flush`, `wait()` or
     `close()` after the jitted call. Writer errors surface the same way.
 
+    Attributes:
+      metrics: the spec.
+      runs: the number of runs.
+      tags: the static tag table handed to the writers (the spec's tags plus the
+        logger's: per_sec, histogram under/overflow, running); timer tags come on top.
+      report_nbytes: bytes of the report the last `flush` copied device -> host.
+      emit_calls: host callbacks received from `emit` (one per period end, whatever the
+        number of vmapped seeds in it).
+
     Args:
       metrics: the spec whose states are flushed.
       writers: the writers of the run (`runs=1`), or a function `run -> writers` called
@@ -194,16 +203,22 @@ class Logger(AbstractContextManager):
         if isinstance(max_pending, bool) or not isinstance(max_pending, int) or max_pending < 1:
             raise ValueError(f"Logger: max_pending must be an int >= 1, got {max_pending!r}.")
         if not isinstance(timer_prefix, str) or not timer_prefix:
-            raise ValueError(f"Logger: timer_prefix must be a non-empty string, got {timer_prefix!r}.")
+            raise ValueError(
+                f"Logger: timer_prefix must be a non-empty string, got {timer_prefix!r}."
+            )
         self.metrics = metrics
         self.runs = runs
-        self.tags: tuple[TagInfo, ...] = metrics.tags + tuple(_derived_tags(metrics, include_running))
+        self.tags: tuple[TagInfo, ...] = metrics.tags + tuple(
+            _derived_tags(metrics, include_running)
+        )
         _tags.check_unique((i.tag, f"{i.group} {i.metric!r} ({i.stat})") for i in self.tags)
         self._timer_prefix = timer_prefix
         self._timer_tags: set[str] = set()
         self._writers = self._make_writers(writers, runs)
         infos = {i.tag: i for i in self.tags}
-        edges = {i.tag: metrics.histogram_edges(i.tag) for i in metrics.tags if i.stat == "histogram"}
+        edges = {
+            i.tag: metrics.histogram_edges(i.tag) for i in metrics.tags if i.stat == "histogram"
+        }
         self._books = [_RunBook(infos, edges) for _ in range(runs)]
         self._nonfinite_tags = [i.tag for i in metrics.tags if i.stat == "nonfinite"]
 
@@ -280,8 +295,8 @@ class Logger(AbstractContextManager):
             array is fetched by the writer thread, not here.
 
         Returns:
-          The reset state. Only the period statistics are new arrays; running episodes,
-          windows-free parts and counters are the same arrays as in `state`.
+          The reset state. Only the report streams are new arrays; running episodes and
+          counters are the very arrays of `state` (no copy of O(num_envs) data).
 
         Raises:
           NonFiniteError: a metric with policy "raise" saw non-finite values in the
@@ -389,7 +404,7 @@ class Logger(AbstractContextManager):
           >>> logger = jm.Logger(metrics, lambda run: [memory[run]], runs=2)
           >>> def train(seed, run):
           ...     def body(state, i):
-          ...         state = metrics.log(state, {"x": seed * 10.0 + i})
+          ...         state = metrics.log(state, {"x": seed * 10.0 + i.astype(jnp.float32)})
           ...         return logger.emit(state, i, i % 2 == 1, run=run), None
           ...     return jax.lax.scan(body, metrics.init(1), jnp.arange(4))[0]
           >>> _ = jax.jit(jax.vmap(train))(jnp.arange(2.0), jnp.arange(2))
@@ -397,6 +412,7 @@ class Logger(AbstractContextManager):
           >>> [(r.step, r.scalars["Train/x"]) for r in memory[1].records]
           [(1, 10.5), (3, 12.5)]
         """
+        self._check_open("emit")
         if run is None:
             if self.runs != 1:
                 raise TypeError(f"Logger(runs={self.runs}).emit needs run=<run index>.")
@@ -410,11 +426,16 @@ class Logger(AbstractContextManager):
             ("when", when, when.dtype == jnp.bool_),
         ):
             if not ok or v.shape != ():
-                kind = "bool" if name == "when" else "int"
-                raise TypeError(f"Logger.emit: {name} must be a {kind} scalar, got {v.dtype}{list(v.shape)}.")
+                kind = "a bool" if name == "when" else "an int"
+                raise TypeError(
+                    f"Logger.emit: {name} must be {kind} scalar, got {v.dtype}{list(v.shape)}."
+                )
         return self._emit(state, step, when, run)
 
     def _on_emit(self, report: Any, step: np.ndarray, when: np.ndarray, run: np.ndarray) -> None:
+        if self._closed:
+            # Raised inside the jitted call that emitted, the only place left to report it.
+            raise RuntimeError("Logger.emit: the logger is closed; create a new Logger.")
         wall_time = time.time()
         host = self.metrics.to_host(report)
         nd = np.ndim(when)
@@ -457,7 +478,9 @@ class Logger(AbstractContextManager):
         finally:
             self._slots.release()
 
-    def _write_run(self, run: int, host: Mapping[str, Any], step: int, wall_time: float, timers: dict) -> None:
+    def _write_run(
+        self, run: int, host: Mapping[str, Any], step: int, wall_time: float, timers: dict
+    ) -> None:
         record = self._books[run].record(host, step, wall_time, timers)
         for w in self._writers[run]:
             try:

@@ -183,7 +183,10 @@ def test_tensorboard_margin_layout_pairs_each_mean_with_its_std_band(written):
         for s in chart.margin.series
     }
     assert series == {"Train/x": ("Margin/Train/x/lower", "Margin/Train/x/upper")}
-    lower, upper = _tb_scalars(acc, "Margin/Train/x/lower"), _tb_scalars(acc, "Margin/Train/x/upper")
+    lower, upper = (
+        _tb_scalars(acc, "Margin/Train/x/lower"),
+        _tb_scalars(acc, "Margin/Train/x/upper"),
+    )
     want = {s: (r["Train/x"], r["Train/x/std"]) for s, r in zip(STEPS, ref) if "Train/x" in r}
     assert sorted(lower) == sorted(upper) == sorted(want)
     for s, (m, sd) in want.items():
@@ -301,7 +304,9 @@ def test_invalid_log_path_fails_at_writer_creation_naming_it(tmp_path, make):
 
 
 def test_band_tag_colliding_with_a_metric_tag_is_rejected_at_logger_creation(tmp_path):
-    metrics = jm.Metrics(terms={"Train/x/lower": lambda s: s}, logged=["x"], episode_prefix="Margin")
+    metrics = jm.Metrics(
+        terms={"Train/x/lower": lambda s: s}, logged=["x"], episode_prefix="Margin"
+    )
     with pytest.raises(ValueError, match="Margin/Train/x/lower"):
         jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
 
