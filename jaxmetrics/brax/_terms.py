@@ -240,9 +240,7 @@ def norm(
     def fn(t: Transition) -> jax.Array:
         x = jnp.asarray(get(t))
         if x.ndim != 2:
-            raise ValueError(
-                f"norm: get(transition) must be [num_envs, D], got shape {x.shape}."
-            )
+            raise ValueError(f"norm: get(transition) must be [num_envs, D], got shape {x.shape}.")
         if idx is not None:
             x = x[:, idx]
         return jnp.linalg.norm(x, ord=ord, axis=-1)

@@ -277,7 +277,7 @@ def wrap(
           })
           env = jmb.wrap(envs.get_environment("inverted_pendulum", backend="mjx"),
                          metrics, episode_length=100)
-          state = env.reset(jax.random.split(jax.random.key(0), 8))
+          state = env.reset(jax.random.split(jax.random.PRNGKey(0), 8))
           state, _ = jax.lax.scan(
               lambda s, a: (env.step(s, a), None), state, jnp.zeros((200, 8, 1)))
           report = metrics.to_host(metrics.compute(jmb.metrics_state(state)))
