@@ -12,9 +12,9 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -25,6 +25,7 @@ from ._emit import InGraphEmit
 from ._metrics import Metrics, NonFiniteError, TagInfo
 from ._state import MetricsState
 from ._timer import Timers
+from ._transfer import Packer
 from ._writers import HistogramData, Record, Writer
 
 WritersArg = Sequence[Writer] | Callable[[int], Sequence[Writer]]
@@ -57,6 +58,14 @@ def _close_quietly(writers: Sequence[Sequence[Any]]) -> None:
                     close()
                 except Exception:  # noqa: BLE001, S110
                     pass
+
+
+class _Check(NamedTuple):
+    """A report whose non-finite counts the caller's thread has yet to check."""
+
+    step: Any  # int, or an int array of shape () or [len(runs)]
+    runs: tuple[int | None, ...]  # None: the only run
+    counts: Any  # packed counts, [len(runs), 2, K] (the leading axis may be absent for one)
 
 
 class _RunBook:
@@ -222,8 +231,10 @@ class Logger(AbstractContextManager):
         self._books = [_RunBook(infos, edges) for _ in range(runs)]
         self._nonfinite_tags = [i.tag for i in metrics.tags if i.stat == "nonfinite"]
 
+        self._packer = Packer(metrics.dtype)
+
         def compute(state):
-            return metrics.compute(state, include_running=include_running)
+            return self._packer.pack(metrics.compute(state, include_running=include_running))
 
         def compute_reset(state):
             new = metrics.reset_period(state)
@@ -234,7 +245,7 @@ class Logger(AbstractContextManager):
         self._timers = Timers()
         self._lock = threading.Lock()
         self._errors: list[BaseException] = []
-        self._unchecked: list[tuple[Any, int | None, Mapping[str, Any]]] = []
+        self._unchecked: list[_Check] = []
         self._slots = threading.Semaphore(max_pending)
         self._queue: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
         self._closed = False
@@ -311,19 +322,20 @@ class Logger(AbstractContextManager):
             )
         self._check_leading(state)
         self._check_step(step)
-        report, episodes, logged = self._flush_fn(state)
-        leaves = jax.tree.leaves(report)
-        for leaf in leaves:
-            leaf.copy_to_host_async()
-        self.report_nbytes = sum(leaf.nbytes for leaf in leaves)
+        (floats, counts), episodes, logged = self._flush_fn(state)
+        floats.copy_to_host_async()
+        counts.copy_to_host_async()
+        self.report_nbytes = floats.nbytes + counts.nbytes
         wall_time = time.time()
         timers = self._timers.take()
         self._slots.acquire()
-        self._queue.put(functools.partial(self._write_flush, report, step, wall_time, timers))
+        self._queue.put(
+            functools.partial(self._write_flush, floats, counts, step, wall_time, timers)
+        )
         earlier = self._take_unchecked()
+        runs = (None,) if self.runs == 1 else tuple(range(self.runs))
         with self._lock:
-            subset = {t: report[t] for t in self._nonfinite_tags}
-            self._unchecked.append((step, None if self.runs == 1 else -1, subset))
+            self._unchecked.append(_Check(step, runs, counts))
         self._surface(earlier)
         return state._replace(episodes=episodes, logged=logged)
 
@@ -432,15 +444,16 @@ class Logger(AbstractContextManager):
                 )
         return self._emit(state, step, when, run)
 
-    def _on_emit(self, report: Any, step: np.ndarray, when: np.ndarray, run: np.ndarray) -> None:
+    def _on_emit(
+        self, packed: tuple[np.ndarray, np.ndarray], step: Any, when: Any, run: Any
+    ) -> None:
         if self._closed:
             # Raised inside the jitted call that emitted, the only place left to report it.
             raise RuntimeError("Logger.emit: the logger is closed; create a new Logger.")
         wall_time = time.time()
-        host = self.metrics.to_host(report)
-        nd = np.ndim(when)
         n = int(np.size(when))
-        flat = {k: np.reshape(v, (n,) + np.shape(v)[nd:]) for k, v in host.items()}
+        floats = np.reshape(packed[0], (n, -1))
+        counts = np.reshape(packed[1], (n, 2, -1))
         step, when, run = (np.reshape(a, (n,)) for a in (step, when, run))
         with self._lock:
             self.emit_calls += 1
@@ -451,9 +464,9 @@ class Logger(AbstractContextManager):
                         ValueError(f"Logger.emit: run index {r} is outside [0, {self.runs}).")
                     )
                     continue
-                one = {k: v[i] for k, v in flat.items()}
-                self._unchecked.append((s, r, {t: one[t] for t in self._nonfinite_tags}))
-                self._queue.put(functools.partial(self._write_run, r, one, s, wall_time, {}))
+                self._unchecked.append(_Check(s, (r,), counts[i]))
+                host = functools.partial(self._packer.unpack, floats[i], counts[i])
+                self._queue.put(functools.partial(self._write_run, r, host, s, wall_time, {}))
 
     # ------------------------------------------------------------------ writer thread
 
@@ -468,20 +481,28 @@ class Logger(AbstractContextManager):
                 with self._lock:
                     self._errors.append(e)
 
-    def _write_flush(self, report: Any, step: Any, wall_time: float, timers: dict) -> None:
+    def _write_flush(
+        self, floats: jax.Array, counts: jax.Array, step: Any, wall_time: float, timers: dict
+    ) -> None:
         try:
-            host = self.metrics.to_host(report)
+            f = np.reshape(np.asarray(floats), (self.runs, -1))
+            c = np.reshape(np.asarray(counts), (self.runs, 2, -1))
             steps = np.broadcast_to(np.asarray(step), (self.runs,))
             for r in range(self.runs):
-                one = host if self.runs == 1 else {k: np.asarray(v)[r] for k, v in host.items()}
-                self._write_run(r, one, int(steps[r]), wall_time, timers)
+                host = functools.partial(self._packer.unpack, f[r], c[r])
+                self._write_run(r, host, int(steps[r]), wall_time, timers)
         finally:
             self._slots.release()
 
     def _write_run(
-        self, run: int, host: Mapping[str, Any], step: int, wall_time: float, timers: dict
+        self,
+        run: int,
+        host: Callable[[], Mapping[str, Any]],
+        step: int,
+        wall_time: float,
+        timers: dict,
     ) -> None:
-        record = self._books[run].record(host, step, wall_time, timers)
+        record = self._books[run].record(host(), step, wall_time, timers)
         for w in self._writers[run]:
             try:
                 w.write(record)
@@ -540,24 +561,24 @@ class Logger(AbstractContextManager):
                 f"({self.runs},)), got {step!r}."
             )
 
-    def _take_unchecked(self) -> list[tuple[Any, int | None, Mapping[str, Any]]]:
+    def _take_unchecked(self) -> list["_Check"]:
         with self._lock:
             out, self._unchecked = self._unchecked, []
         return out
 
-    def _surface(self, pending: Sequence[tuple[Any, int | None, Mapping[str, Any]]]) -> None:
+    def _surface(self, pending: Sequence["_Check"]) -> None:
         """Runs the non-finite checks of earlier reports on the caller's thread and
         raises what was deferred."""
         problems: list[str] = []
-        for step, run, subset in pending:
-            host = self.metrics.to_host(subset)
-            steps = np.broadcast_to(np.asarray(step), (self.runs,))
-            runs: Iterator[int | None] = iter([run] if run != -1 else range(self.runs))
-            for r in runs:
-                one = host if run != -1 else {k: np.asarray(v)[r] for k, v in host.items()}
-                where = f"step {int(steps[r or 0])}" + ("" if r is None else f", run {r}")
+        for check in pending:
+            n = len(check.runs)
+            counts = np.reshape(np.asarray(check.counts), (n, 2, -1))
+            steps = np.broadcast_to(np.asarray(check.step), (n,))
+            for i, r in enumerate(check.runs):
+                found = self._packer.unpack(None, counts[i], self._nonfinite_tags)
+                where = f"step {int(steps[i])}" + ("" if r is None else f", run {r}")
                 try:
-                    self.metrics.check_nonfinite({k: int(v) for k, v in one.items()})
+                    self.metrics.check_nonfinite(found)
                 except NonFiniteError as e:
                     problems.append(f"{where}: {e}")
         with self._lock:

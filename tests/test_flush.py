@@ -262,3 +262,26 @@ def test_flush_rejects_misuse_with_the_fix_in_the_message():
         logger.flush(metrics.init(1), 0)
     with pytest.raises(TypeError, match="function run -> writers"):
         jm.Logger(metrics, [jm.MemoryWriter()], runs=2)
+
+
+def test_flush_moves_o_metrics_bytes_whatever_num_envs():
+    metrics = jm.Metrics(terms={"r": jm.Term(lambda x: x, stats=("mean", jm.window(8)))})
+    sizes = []
+    for num_envs in (4, 4096):
+        with jm.Logger(metrics, [jm.MemoryWriter()]) as logger:
+            logger.flush(metrics.init(num_envs), 0)
+            sizes.append(logger.report_nbytes)
+    # mean, window mean/std/min/max + 8 window values as float32; nonfinite and the two
+    # counters as uint32 hi/lo pairs.
+    assert sizes == [(5 + 8) * 4 + 3 * 2 * 4] * 2
+
+
+def test_counters_past_2_to_the_32_reach_writers_exactly():
+    metrics = jm.Metrics(counters=["samples"])
+    memory = jm.MemoryWriter()
+    big = 2**32 - 1
+    state = metrics.init(1)
+    with jm.Logger(metrics, [memory]) as logger:
+        for step in range(3):
+            state = logger.flush(metrics.increment(state, "samples", jnp.uint32(big)), step)
+    assert [r.scalars["Counters/samples"] for r in memory.records] == [big, 2 * big, 3 * big]

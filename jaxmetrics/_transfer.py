@@ -1,0 +1,88 @@
+"""The report's trip to the host, packed in-graph into two flat arrays.
+
+A report is a dict of ~10 small arrays per metric; copying and fetching each one costs a
+dispatch and a Python call per leaf, which dominates a flush long before the bytes do.
+`pack` concatenates every float statistic into one vector and every exact count (the
+`Count` hi/lo words) into one `[2, K]` uint32 array, so a flush moves two arrays.
+`unpack` restores the host report (floats, exact Python ints, numpy arrays), like
+`Metrics.to_host`.
+"""
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import _count
+from ._count import Count
+
+
+class _Slot(NamedTuple):
+    tag: str
+    is_count: bool
+    offset: int
+    shape: tuple[int, ...]
+
+
+class Packer:
+    """Packs reports of one spec; the layout is fixed by the first trace of `pack`."""
+
+    def __init__(self, dtype: Any):
+        self._dtype = jnp.dtype(dtype)
+        self._layout: tuple[_Slot, ...] | None = None
+
+    def pack(self, report: Mapping[str, Any]) -> tuple[jax.Array, jax.Array]:
+        """In-graph: `(floats [F], counts uint32 [2, K])`."""
+        floats, his, los, layout = [], [], [], []
+        f_off = c_off = 0
+        for tag, v in report.items():
+            if isinstance(v, Count):
+                layout.append(_Slot(tag, True, c_off, tuple(v.hi.shape)))
+                his.append(jnp.ravel(v.hi))
+                los.append(jnp.ravel(v.lo))
+                c_off += math.prod(v.hi.shape)
+            else:
+                a = jnp.asarray(v)
+                layout.append(_Slot(tag, False, f_off, tuple(a.shape)))
+                floats.append(jnp.ravel(a).astype(self._dtype))
+                f_off += a.size
+        slots = tuple(layout)
+        if self._layout is None:
+            self._layout = slots
+        elif slots != self._layout:
+            raise ValueError(
+                "the report's layout changed between traces; a Logger serves one Metrics spec."
+            )
+        f = jnp.concatenate(floats) if floats else jnp.zeros((0,), self._dtype)
+        c = (
+            jnp.stack([jnp.concatenate(his), jnp.concatenate(los)])
+            if his
+            else jnp.zeros((2, 0), jnp.uint32)
+        )
+        return f, c
+
+    def unpack(
+        self, floats: np.ndarray | None, counts: np.ndarray, tags: Iterable[str] | None = None
+    ) -> dict[str, Any]:
+        """Host: the report (or only `tags`) from one element's packed arrays; scalars
+        become floats, counts exact Python ints (int64 arrays when not scalar)."""
+        assert self._layout is not None, "unpack before any pack was traced"
+        wanted = None if tags is None else set(tags)
+        out: dict[str, Any] = {}
+        for s in self._layout:
+            if wanted is not None and s.tag not in wanted:
+                continue
+            n = math.prod(s.shape)
+            if s.is_count:
+                part = counts[:, s.offset : s.offset + n]
+                out[s.tag] = _count.to_int(
+                    Count(part[0].reshape(s.shape), part[1].reshape(s.shape))
+                )
+            else:
+                assert floats is not None
+                a = floats[s.offset : s.offset + n].reshape(s.shape)
+                out[s.tag] = float(a) if a.ndim == 0 else a
+        return out
