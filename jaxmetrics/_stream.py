@@ -137,6 +137,11 @@ def init(plan: StreamPlan) -> StreamState:
     )
 
 
+def _weight_dtype(dt: jnp.dtype) -> jnp.dtype:
+    # Counts and weights need float32's range even for a float16/bfloat16 state.
+    return jnp.dtype(jnp.float64) if dt == jnp.float64 else jnp.dtype(jnp.float32)
+
+
 def _rank(mask: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Arrival rank of each masked-in column of each row, and the number per row."""
     m = mask.astype(jnp.int32)
@@ -153,8 +158,9 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     """Feeds `values[R, B]` where `mask[R, B]`, column order being arrival order."""
     dt = plan.dtype
     k = jnp.sum(mask, axis=1, dtype=jnp.int32)
-    kf = k.astype(dt)
-    na = _count.as_float(s.count, dt)
+    wt = _weight_dtype(dt)
+    kf = k.astype(wt)
+    na = _count.as_float(s.count, wt)
     has = ~_count.is_zero(s.count)
     first = jnp.take_along_axis(values, jnp.argmax(mask, axis=1)[:, None], axis=1)[:, 0]
     # Shifted moments: deviations from the running mean (or the batch's first value) keep
@@ -163,13 +169,13 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     d = jnp.where(mask, values - shift[:, None], jnp.zeros_like(values))
     s1 = jnp.sum(d, axis=1)
     s2 = jnp.sum(d * d, axis=1)
-    mb = s1 / jnp.maximum(kf, 1)
+    mb = s1 / jnp.maximum(kf, 1).astype(dt)
     m2b = jnp.maximum(s2 - s1 * mb, 0)
     n = na + kf
     frac = jnp.where(n > 0, kf / jnp.maximum(n, 1), 0)
     delta = mb + (shift - s.mean)
-    mean = s.mean + delta * frac
-    m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + delta * delta * na * frac)
+    mean = s.mean + delta * frac.astype(dt)
+    m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + delta * delta * (na * frac).astype(dt))
     total, total_c = kahan_add(s.sum, s.sum_c, jnp.sum(jnp.where(mask, values, 0), axis=1))
     vmin = jnp.minimum(s.min, jnp.min(jnp.where(mask, values, jnp.inf), axis=1))
     vmax = jnp.maximum(s.max, jnp.max(jnp.where(mask, values, -jnp.inf), axis=1))
@@ -268,11 +274,12 @@ def _ordered(g: WindowGroup, w: WindowState) -> tuple[jax.Array, jax.Array]:
 def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
     """Combines streams of disjoint workers; `b`'s values count as the newer ones."""
     dt = plan.dtype
-    na, nb = _count.as_float(a.count, dt), _count.as_float(b.count, dt)
+    wt = _weight_dtype(dt)
+    na, nb = _count.as_float(a.count, wt), _count.as_float(b.count, wt)
     n = na + nb
     frac = jnp.where(n > 0, nb / jnp.maximum(n, 1), 0)
     delta = jnp.where(nb > 0, b.mean - a.mean, 0)
-    m2, m2_c = kahan_add(a.m2, a.m2_c, b.m2 + delta * delta * na * frac)
+    m2, m2_c = kahan_add(a.m2, a.m2_c, b.m2 + delta * delta * (na * frac).astype(dt))
     m2, m2_c = kahan_add(m2, m2_c, -b.m2_c)
     total, total_c = kahan_add(a.sum, a.sum_c, b.sum)
     total, total_c = kahan_add(total, total_c, -b.sum_c)
@@ -293,7 +300,7 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
         windows.append(WindowState(buf, jnp.zeros_like(wa.pos), filled))
     return StreamState(
         count=_count.merge(a.count, b.count),
-        mean=a.mean + delta * frac,
+        mean=a.mean + delta * frac.astype(dt),
         m2=m2,
         m2_c=m2_c,
         sum=total,
@@ -329,11 +336,12 @@ def _percentiles(sorted_vals: jax.Array, filled: jax.Array, ps: tuple[float, ...
 def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Count]]:
     """Per row, a dict of every statistic it has; empty-period values are NaN."""
     dt = plan.dtype
-    n = _count.as_float(s.count, dt)
+    n = _count.as_float(s.count, _weight_dtype(dt))
     empty = n == 0
     nan = jnp.full_like(s.mean, jnp.nan)
     mean = jnp.where(empty, nan, s.mean)
-    std = jnp.where(empty, nan, jnp.sqrt(jnp.maximum(s.m2 - s.m2_c, 0) / jnp.maximum(n, 1)))
+    var = jnp.maximum(s.m2 - s.m2_c, 0).astype(n.dtype) / jnp.maximum(n, 1)
+    std = jnp.where(empty, nan, jnp.sqrt(var).astype(dt))
     out: list[dict[str, jax.Array | Count]] = [
         {
             "mean": mean[i],

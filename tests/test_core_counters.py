@@ -1,0 +1,58 @@
+"""Lifetime counters stay exact past 2^31 (and 2^32) without jax_enable_x64."""
+
+import jax
+import jax.numpy as jnp
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import jaxmetrics as jm
+from jaxmetrics import _count
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.integers(0, 2**32 - 1), min_size=1, max_size=20))
+def test_count_add_is_exact_against_python_ints(incs):
+    add = jax.jit(_count.add)
+    c = _count.zeros(())
+    for i in incs:
+        c = add(c, jnp.asarray(i, jnp.uint32))
+    assert _count.to_int(c) == sum(incs)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**40), st.integers(0, 2**40))
+def test_count_merge_is_exact(a, b):
+    def make(v):
+        return _count.Count(
+            jnp.asarray(v >> 32, jnp.uint32), jnp.asarray(v & 0xFFFFFFFF, jnp.uint32)
+        )
+
+    assert _count.to_int(jax.jit(_count.merge)(make(a), make(b))) == a + b
+
+
+def test_env_steps_exact_past_2_pow_31():
+    # 4096 envs x 600k steps = 2.46e9 env steps: an int32 counter would have wrapped.
+    n_env, steps = 4096, 600_000
+    m = jm.Metrics(terms={"x": lambda s: s}, counters=["updates"])
+
+    @jax.jit
+    def run(state):
+        def body(s, _):
+            s = m.update(s, jnp.zeros(n_env), jnp.zeros(n_env, bool))
+            return s, None
+
+        return jax.lax.scan(body, state, None, length=steps // 1000)[0]
+
+    # Run 1000 scans of 600 steps; each adds 600*4096 env steps.
+    state = m.init(n_env)
+    for _ in range(1000):
+        state = run(state)
+    host = m.to_host(m.compute(state))
+    assert host["Counters/env_steps"] == n_env * steps
+    assert host["Counters/env_steps"] > 2**31
+    # A user counter incremented by large amounts passes 2^32 exactly.
+    inc = jax.jit(m.increment, static_argnums=1)
+    for _ in range(3):
+        state = inc(state, "updates", jnp.asarray(2**31 + 7, jnp.uint32))
+    assert m.to_host(m.compute(state))["Counters/updates"] == 3 * (2**31 + 7)
+    assert isinstance(host["Counters/env_steps"], int)

@@ -1,0 +1,181 @@
+"""Bad input fails at spec-build or trace time, naming the culprit and the fix."""
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+import jaxmetrics as jm
+
+
+def ident(s):
+    return s
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (
+            {"terms": {"x": jm.Term(ident, reduce="avg")}},
+            r"term 'x': unknown episode reduction 'avg'",
+        ),
+        (
+            {"terms": {"x": jm.Term(ident, stats=("median",))}},
+            r"term 'x': unknown report statistic 'median'",
+        ),
+        ({"terms": {"x": jm.Term(ident, stats=("ema",))}}, r"Use jaxmetrics.ema\(...\)"),
+        (
+            {"terms": {"x": jm.Term(ident, stats=(jm.window(3), jm.window(5)))}},
+            r"at most one window",
+        ),
+        (
+            {"terms": {"x": jm.Term(ident, nonfinite="ignore")}},
+            r"term 'x': unknown nonfinite policy 'ignore'",
+        ),
+        (
+            {"logged": {"loss": jm.Logged(stats=(3,))}},
+            r"logged value 'loss': a report statistic must be",
+        ),
+        ({"logged": "loss"}, r"logged must be a dict or a list of names"),
+        ({"terms": {"x": 3}}, r"term 'x': expected jaxmetrics.Term or a function"),
+        ({"terms": {"x": jm.Term(ident, outputs="ab")}}, r"outputs must be a non-empty sequence"),
+        ({"terms": {"x": jm.Term(ident, outputs=("a", "a"))}}, r"duplicate output names"),
+        ({"terms": {"x": jm.Term(ident, reduce={"a": "sum"})}}, r"a dict `reduce` needs `outputs`"),
+        (
+            {"terms": {"x": jm.Term(ident, outputs=("a",), reduce={"b": "sum"})}},
+            r"unknown outputs \['b'\]",
+        ),
+        ({"terms": {"x": ident}, "counters": ("episodes",)}, r"built in"),
+        ({"counters": ("a", "a")}, r"duplicate counter names"),
+        ({"nonfinite": "drop"}, r"Metrics\(nonfinite=...\): unknown nonfinite policy"),
+        ({"dtype": jnp.int32}, r"must be a float dtype"),
+    ],
+)
+def test_bad_spec_rejected_when_built(kwargs, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        jm.Metrics(**kwargs)
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: jm.window(0), r"window size must be a positive int, got 0"),
+        (lambda: jm.window(-3), r"window size must be a positive int"),
+        (lambda: jm.window(2.5), r"window size must be a positive int"),
+        (lambda: jm.window(10, percentiles=(101,)), r"percentiles must be numbers in \[0, 100\]"),
+        (lambda: jm.ema(0.0), r"ema coefficient must be a number in \(0, 1\], got 0.0"),
+        (lambda: jm.ema(1.5), r"ema coefficient must be a number in \(0, 1\]"),
+        (lambda: jm.histogram(0, (0, 1)), r"histogram bins must be a positive int"),
+        (lambda: jm.histogram(10, (1, 1)), r"histogram range needs lo < hi"),
+        (lambda: jm.histogram(10, (0, float("inf"))), r"two finite numbers"),
+    ],
+)
+def test_bad_statistic_parameters_rejected(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+@pytest.mark.parametrize(
+    "terms, match",
+    [
+        # outputs of a term named "x" and a statistic of "x" would write the same tag
+        (
+            {"x": jm.Term(ident, stats=("std",)), "x/std": ident},
+            r"tag collision.*Episode_Metrics/x/std",
+        ),
+        # distinct names that TensorBoard sanitizes to the same tag
+        ({"a b": ident, "a_b": ident}, r"tag collision.*TensorBoard turns"),
+    ],
+)
+def test_colliding_tags_rejected_when_built(terms, match):
+    with pytest.raises(ValueError, match=match):
+        jm.Metrics(terms=terms)
+
+
+N = 8
+
+
+@pytest.mark.parametrize(
+    "fn, match",
+    [
+        (
+            lambda s: s[:, None],
+            r"term 'x' returned shape \(8, 1\); expected \(num_envs,\)=\(8,\): drop the trailing axis with .squeeze\(-1\)",
+        ),
+        (
+            lambda s: jnp.sum(s),
+            r"returned shape \(\); .*it returned a scalar; broadcast it with jnp.full",
+        ),
+        (lambda s: jnp.stack([s, s], -1), r"reduce the extra axes"),
+        (lambda s: s[:3], r"returned shape \(3,\)"),
+        (lambda s: s.astype(jnp.complex64), r"term 'x' returned dtype complex64"),
+        (lambda s: "fast", r"term 'x' returned .*float/int/bool|term 'x' returned dtype"),
+    ],
+)
+def test_bad_term_output_rejected_at_trace_time(fn, match):
+    m = jm.Metrics(terms={"x": fn})
+    with pytest.raises((ValueError, TypeError), match=match):
+        jax.jit(m.update)(m.init(N), jnp.zeros(N), jnp.zeros(N, bool))
+
+
+def test_multi_output_term_must_return_its_declared_keys():
+    m = jm.Metrics(terms={"t": jm.Term(lambda s: {"a": s}, outputs=("a", "b"))})
+    with pytest.raises(
+        ValueError, match=r"term 't' returned keys \['a'\]; its outputs are \['a', 'b'\]"
+    ):
+        m.update(m.init(N), jnp.zeros(N), jnp.zeros(N, bool))
+    m = jm.Metrics(terms={"t": jm.Term(lambda s: s, outputs=("a",))})
+    with pytest.raises(TypeError, match=r"declares outputs \['a'\] but returned"):
+        m.update(m.init(N), jnp.zeros(N), jnp.zeros(N, bool))
+
+
+def test_bad_done_rejected():
+    m = jm.Metrics(terms={"x": ident})
+    with pytest.raises(
+        ValueError, match=r"done must be a bool array of shape \(num_envs,\)=\(8,\)"
+    ):
+        m.update(m.init(N), jnp.zeros(N), jnp.zeros((N, 1), bool))
+
+
+def test_bad_log_and_increment_rejected():
+    m = jm.Metrics(logged=["loss"], counters=["updates"])
+    s = m.init(0)
+    with pytest.raises(ValueError, match=r"log: unknown logged names \['los'\]; declare them"):
+        m.log(s, {"los": 1.0})
+    with pytest.raises(ValueError, match=r"increment: unknown counter 'update'"):
+        m.increment(s, "update")
+    with pytest.raises(TypeError, match=r"`by` must be a scalar int"):
+        m.increment(s, "updates", 1.5)
+
+
+def test_state_from_another_spec_rejected():
+    a = jm.Metrics(terms={"x": ident})
+    b = jm.Metrics(terms={"x": ident, "y": ident})
+    with pytest.raises(ValueError, match=r"built by a different Metrics spec"):
+        b.update(a.init(N), jnp.zeros(N), jnp.zeros(N, bool))
+    with pytest.raises(TypeError, match=r"expected a MetricsState"):
+        a.compute({"not": "a state"})
+
+
+def test_init_rejects_bad_num_envs():
+    m = jm.Metrics(terms={"x": ident})
+    with pytest.raises(TypeError, match=r"num_envs must be an int"):
+        m.init(4.0)
+    with pytest.raises(ValueError, match=r"num_envs must be >= 0"):
+        m.init(-1)
+
+
+def test_nonfinite_policies_at_flush():
+    m = jm.Metrics(
+        terms={
+            "warned": ident,
+            "raised": jm.Term(ident, nonfinite="raise"),
+            "quiet": jm.Term(ident, nonfinite="propagate"),
+        }
+    )
+    s = m.update(m.init(2), jnp.asarray([jnp.nan, 1.0]), jnp.ones(2, bool))
+    host = m.to_host(m.compute(s))
+    with pytest.raises(jm.NonFiniteError, match=r"term 'raised': 1 non-finite value") as err:
+        with pytest.warns(RuntimeWarning, match=r"term 'warned': 1 non-finite value"):
+            m.check_nonfinite(host)
+    assert "quiet" not in str(err.value)
+    assert host["Episode_Metrics/raised"] == 1.0  # left out, as under "skip"
