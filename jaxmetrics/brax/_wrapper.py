@@ -266,7 +266,7 @@ def wrap(
     Examples:
       A rollout (not run here: compiling MJX takes a while)::
 
-          import jax, jaxmetrics as jm, jaxmetrics.brax as jmb
+          import jax, jax.numpy as jnp, jaxmetrics as jm, jaxmetrics.brax as jmb
           from brax import envs
 
           metrics = jm.Metrics(terms={
