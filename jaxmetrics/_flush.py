@@ -575,6 +575,8 @@ class Logger(AbstractContextManager):
             counts = np.reshape(np.asarray(check.counts), (n, 2, -1))
             steps = np.broadcast_to(np.asarray(check.step), (n,))
             for i, r in enumerate(check.runs):
+                if not self._packer.any_nonzero(counts[i], self._nonfinite_tags):
+                    continue
                 found = self._packer.unpack(None, counts[i], self._nonfinite_tags)
                 where = f"step {int(steps[i])}" + ("" if r is None else f", run {r}")
                 try:

@@ -64,6 +64,18 @@ class Packer:
         )
         return f, c
 
+    def any_nonzero(self, counts: np.ndarray, tags: Iterable[str]) -> bool:
+        """Host: whether any of the count `tags` is non-zero in one element's counts."""
+        assert self._layout is not None, "any_nonzero before any pack was traced"
+        wanted = set(tags)
+        cols = [
+            i
+            for s in self._layout
+            if s.is_count and s.tag in wanted
+            for i in range(s.offset, s.offset + math.prod(s.shape))
+        ]
+        return bool(counts[:, cols].any())
+
     def unpack(
         self, floats: np.ndarray | None, counts: np.ndarray, tags: Iterable[str] | None = None
     ) -> dict[str, Any]:

@@ -115,7 +115,8 @@ while True:
 
 def test_everything_flushed_before_sigkill_is_readable(tmp_path):
     n = 20
-    env = dict(os.environ, PYTHONPATH=ROOT, JAX_PLATFORMS="cpu")
+    path = os.pathsep.join(p for p in (ROOT, os.environ.get("PYTHONPATH")) if p)
+    env = dict(os.environ, PYTHONPATH=path, JAX_PLATFORMS="cpu")
     child = subprocess.Popen(
         [sys.executable, "-c", _CHILD, str(tmp_path), str(n)],
         stdout=subprocess.PIPE,
