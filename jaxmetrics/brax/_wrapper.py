@@ -121,7 +121,9 @@ class MetricsWrapper(Wrapper):
     The MetricsState is not per env: code that maps over every `info` leaf assuming a
     leading env axis must leave `info[STATE_KEY]` alone. `reset` starts a fresh
     MetricsState. `Counters/env_steps` counts sub-steps (env steps x `action_repeat`,
-    Brax's `num_timesteps` convention).
+    Brax's `num_timesteps` convention). As with Brax's `EpisodeWrapper`, without an
+    `AutoResetWrapper` above it envs keep stepping past `done`, and every further step
+    with `done` set counts as an episode.
 
     Args:
       env: a batched Brax env (`VmapWrapper` or `DomainRandomizationVmapWrapper`, or any
@@ -250,8 +252,7 @@ def wrap(
 
     Builds `AutoResetWrapper(MetricsWrapper(VmapWrapper(env), metrics, episode_length,
     action_repeat))` (`DomainRandomizationVmapWrapper` when `randomization_fn` is given),
-    the same stack and info keys as Brax's. Usable as `brax.training.agents.ppo.train`'s
-    `wrap_env_fn` via `functools.partial(wrap, metrics=metrics)`.
+    the same stack and info keys as Brax's, with the same signature plus `metrics`.
 
     Args:
       env: an unbatched Brax env, e.g. `brax.envs.get_environment("ant", backend="mjx")`.
