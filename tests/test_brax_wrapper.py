@@ -325,9 +325,17 @@ REPEAT_LENGTH = 24  # sub-steps: 8 env steps
 REPEAT_STEPS = 30
 
 
+def randomize_damping(sys):
+    """Brax's domain-randomization convention: a vectorized system and its vmap in_axes."""
+    scale = jnp.linspace(0.5, 3.0, NUM_ENVS, dtype=jnp.float32)[:, None]
+    in_axes = jax.tree.map(lambda x: None, sys).tree_replace({"dof_damping": 0})
+    return sys.tree_replace({"dof_damping": jnp.asarray(sys.dof_damping)[None] * scale}), in_axes
+
+
 @pytest.fixture(scope="module")
 def repeated():
-    """Our stack with action_repeat=3, and a hand-written sub-step loop as the reference."""
+    """Our stack with action_repeat=3 and per-env randomized damping, and a hand-written
+    sub-step loop over Brax's DomainRandomizationVmapWrapper as the reference."""
     base = Pendulum(backend="mjx")
     metrics = jm.Metrics(
         terms={
@@ -339,8 +347,14 @@ def repeated():
             **jmb.state_metrics({"upright": "sum", "cart_x": "last"}, stats=STATS),
         }
     )
-    ours = jmb.wrap(base, metrics, episode_length=REPEAT_LENGTH, action_repeat=REPEAT)
-    batched = brax_training.VmapWrapper(base)
+    ours = jmb.wrap(
+        base,
+        metrics,
+        episode_length=REPEAT_LENGTH,
+        action_repeat=REPEAT,
+        randomization_fn=randomize_damping,
+    )
+    batched = brax_training.DomainRandomizationVmapWrapper(base, randomize_damping)
 
     def run(reset_keys, step_keys):
         s_ours = ours.reset(reset_keys)
