@@ -4,6 +4,10 @@ The reference is unrolled in plain Python/numpy float64 from the per-step values
 recorded from the same rollout.
 """
 
+import pathlib
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -182,3 +186,15 @@ def test_wrap_step_errors():
     bad_done = jm.wrap_step(lambda c, a: (c, c, c, jnp.zeros(3, bool)), metrics)
     with pytest.raises(ValueError, match="done must be a bool array of shape"):
         bad_done((jnp.zeros(2), metrics.init(2)), jnp.zeros(2))
+
+
+def test_import_jaxmetrics_imports_neither_brax_nor_mujoco():
+    code = (
+        "import sys, jaxmetrics as jm; jm.wrap_step, jm.Transition; "
+        "print(sorted(m for m in ('brax', 'mujoco') if m in sys.modules))"
+    )
+    root = pathlib.Path(__file__).resolve().parents[1]
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root
+    )
+    assert out.stdout.strip() == "[]"
