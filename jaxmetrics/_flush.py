@@ -377,9 +377,9 @@ class Logger(AbstractContextManager):
         """
         if self._closed:
             return
+        jax.effects_barrier()  # emits still in flight land before the door closes
         self._closed = True
         atexit.unregister(self.close)
-        jax.effects_barrier()
         self._queue.put(self._close_writers)
         self._queue.put(None)
         self._thread.join()

@@ -151,3 +151,22 @@ def test_emit_nonfinite_raise_surfaces_at_close_after_writing():
     with pytest.raises(jm.NonFiniteError, match="step 1, run 0: .*'x'"):
         logger.close()
     assert [r.step for r in memory.records] == [0, 1]
+
+
+def test_emit_of_a_state_sharded_over_devices():
+    mesh = jax.make_mesh((2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,))
+    env_sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))
+    metrics = _make()
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [memory])
+
+    def step(state, x):
+        state = metrics.update(state, x, jnp.ones(8, jnp.bool_))
+        return logger.emit(state, 5, True)
+
+    x = jax.device_put(jnp.arange(8.0, dtype=jnp.float32), env_sharded)
+    jax.jit(step)(metrics.init(8), x)
+    logger.close()
+    (record,) = memory.records
+    assert (record.step, record.scalars["Episode_Metrics/speed"]) == (5, 3.5)
+    assert logger.emit_calls == 1

@@ -286,3 +286,33 @@ def test_counters_past_2_to_the_32_reach_writers_exactly():
         for step in range(3):
             state = logger.flush(metrics.increment(state, "samples", jnp.uint32(big)), step)
     assert [r.scalars["Counters/samples"] for r in memory.records] == [big, 2 * big, 3 * big]
+
+
+def test_running_episodes_are_reported_on_request():
+    metrics = jm.Metrics(terms={"r": lambda x: x})
+    memory = jm.MemoryWriter()
+    state = metrics.init(2)
+    with jm.Logger(metrics, [memory], include_running=True) as logger:
+        state = metrics.update(state, jnp.array([1.0, 3.0]), jnp.array([False, False]))
+        state = metrics.update(state, jnp.array([3.0, 5.0]), jnp.array([False, False]))
+        logger.flush(state, 0)
+    scalars = memory.records[0].scalars
+    assert scalars["Episode_Metrics/r/running"] == 3.0  # per-env step means 2 and 4
+    assert "Episode_Metrics/r" not in scalars  # no episode finished: a gap
+
+
+def test_flush_of_a_state_sharded_over_devices_equals_the_single_device_flush():
+    mesh = jax.make_mesh((2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,))
+    env_sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))
+    metrics = jm.Metrics(terms={"r": jm.Term(lambda x: x, stats=("mean", "max", "count"))})
+    x = jnp.arange(8.0, dtype=jnp.float32)
+    done = jnp.arange(8) % 2 == 0
+    scalars = []
+    for place in (lambda a: a, lambda a: jax.device_put(a, env_sharded)):
+        memory = jm.MemoryWriter()
+        with jm.Logger(metrics, [memory]) as logger:
+            state = jax.jit(metrics.update)(metrics.init(8), place(x), place(done))
+            logger.flush(state, 0)
+        scalars.append(memory.records[0].scalars)
+    assert scalars[0] == scalars[1]
+    assert scalars[0]["Episode_Metrics/r/max"] == 6.0
