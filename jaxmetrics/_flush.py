@@ -561,12 +561,12 @@ class Logger(AbstractContextManager):
                 f"({self.runs},)), got {step!r}."
             )
 
-    def _take_unchecked(self) -> list["_Check"]:
+    def _take_unchecked(self) -> list[_Check]:
         with self._lock:
             out, self._unchecked = self._unchecked, []
         return out
 
-    def _surface(self, pending: Sequence["_Check"]) -> None:
+    def _surface(self, pending: Sequence[_Check]) -> None:
         """Runs the non-finite checks of earlier reports on the caller's thread and
         raises what was deferred."""
         problems: list[str] = []

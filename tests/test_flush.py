@@ -316,3 +316,37 @@ def test_flush_of_a_state_sharded_over_devices_equals_the_single_device_flush():
         scalars.append(memory.records[0].scalars)
     assert scalars[0] == scalars[1]
     assert scalars[0]["Episode_Metrics/r/max"] == 6.0
+
+
+_CHILD_NO_CLOSE = """
+import sys, time
+import jax.numpy as jnp
+import jaxmetrics as jm
+
+class Slow(jm.JsonlWriter):
+    def write(self, record):
+        time.sleep(0.2)
+        super().write(record)
+
+metrics = jm.Metrics(logged=["x"])
+logger = jm.Logger(metrics, [Slow(sys.argv[1])])
+state = metrics.init(1)
+for step in range(3):
+    state = logger.flush(metrics.log(state, {"x": jnp.float32(step)}), step)
+print("EXITING", flush=True)  # no close(): the interpreter exits with writes queued
+"""
+
+
+def test_an_unclosed_logger_is_drained_at_interpreter_exit(tmp_path):
+    path = os.pathsep.join(p for p in (ROOT, os.environ.get("PYTHONPATH")) if p)
+    env = dict(os.environ, PYTHONPATH=path, JAX_PLATFORMS="cpu")
+    out = subprocess.run(
+        [sys.executable, "-c", _CHILD_NO_CLOSE, str(tmp_path / "m.jsonl")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert out.returncode == 0 and out.stdout.strip() == "EXITING", out.stderr
+    with open(tmp_path / "m.jsonl") as f:
+        assert [json.loads(line)["scalars"]["Train/x"] for line in f] == [0.0, 1.0, 2.0]
