@@ -1,10 +1,12 @@
 """Brax integration: a `MetricsWrapper` (Brax's `EpisodeWrapper` plus metrics) and
-ready-made terms over its `Transition`.
+ready-made terms over its `Transition`, and `ProgressFn`, a `progress_fn` for Brax's own PPO
+trainer that writes through jaxmetrics writers.
 
 Wrapper order: `AutoResetWrapper(MetricsWrapper(VmapWrapper(env), metrics, episode_length))`,
 built by `wrap`. Importing this module imports Brax; `import jaxmetrics` does not.
 """
 
+from ._progress import ProgressFn as ProgressFn
 from ._terms import control_effort as control_effort
 from ._terms import episode_length as episode_length
 from ._terms import episode_return as episode_return
@@ -24,6 +26,7 @@ from ._wrapper import wrap as wrap
 __all__ = [
     "STATE_KEY",
     "MetricsWrapper",
+    "ProgressFn",
     "Transition",
     "control_effort",
     "episode_length",
