@@ -332,3 +332,27 @@ def test_import_jaxmetrics_does_not_import_writer_backends():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def test_jsonl_writer_appends_when_a_run_resumes(tmp_path):
+    metrics = jm.Metrics(logged=["x"])
+    path = tmp_path / "m.jsonl"
+    for step in (0, 1):  # two processes' worth of loggers on the same file
+        with jm.Logger(metrics, [jm.JsonlWriter(path)]) as logger:
+            logger.flush(metrics.log(metrics.init(1), {"x": jnp.float32(step)}), step)
+    with open(path) as f:
+        assert [(d["step"], d["scalars"]["Train/x"]) for d in map(json.loads, f)] == [
+            (0, 0.0),
+            (1, 1.0),
+        ]
+
+
+def test_tensorboard_writer_rejects_bad_options_at_creation(tmp_path):
+    with pytest.raises(ValueError, match="needs hparams"):
+        jm.TensorBoardWriter(tmp_path, hparam_metrics=["Train/x"])
+    with pytest.raises(TypeError, match="list of tags"):
+        jm.TensorBoardWriter(tmp_path, hparams={"lr": 0.1}, hparam_metrics="Train/x")
+    with pytest.raises(TypeError, match="'opt'"):
+        jm.TensorBoardWriter(tmp_path, hparams={"opt": object()})
+    with pytest.raises(ValueError, match="window_bins"):
+        jm.TensorBoardWriter(tmp_path, window_bins=0)

@@ -91,6 +91,12 @@ class TensorBoardWriter:
                     )
         elif hparam_metrics is not None:
             raise ValueError("TensorBoardWriter: hparam_metrics needs hparams.")
+        if hparam_metrics is not None and (
+            isinstance(hparam_metrics, str) or not all(isinstance(t, str) for t in hparam_metrics)
+        ):
+            raise TypeError(
+                f"TensorBoardWriter: hparam_metrics must be a list of tags, got {hparam_metrics!r}."
+            )
         self.logdir = _check_dir(logdir, "TensorBoardWriter")
         self._hparams = dict(hparams) if hparams is not None else None
         self._hparam_metrics = None if hparam_metrics is None else list(hparam_metrics)
