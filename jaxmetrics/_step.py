@@ -55,7 +55,7 @@ def wrap_step(
       ...     x = x + a
       ...     return x, x, -jnp.abs(a), x >= 2.0
       >>> metrics = jm.Metrics(terms={"return": jm.Term(lambda t: t.reward, reduce="sum")})
-      >>> wrapped = jm.wrap_step(step, metrics)
+      >>> wrapped = jax.jit(jm.wrap_step(step, metrics))
       >>> carry = (jnp.zeros(2), metrics.init(2))
       >>> for a in ([1.0, 0.5], [1.0, 0.5]):
       ...     carry, obs, reward, done = wrapped(carry, jnp.array(a))

@@ -72,7 +72,7 @@ class Transition(NamedTuple):
 
 
 @contextlib.contextmanager
-def _third_party():
+def _brax_promotion():
     # Brax and MJX internals rely on implicit promotion: run them under JAX's defaults
     # whatever the user's config (terms still run under the user's).
     with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
@@ -153,7 +153,7 @@ class MetricsWrapper(Wrapper):
         self.sub_dt = None if dt is None else float(dt)
 
     def reset(self, rng: jax.Array) -> State:
-        with _third_party():
+        with _brax_promotion():
             state = self.env.reset(rng)
         done = jnp.asarray(state.done)
         if done.ndim != 1:
@@ -194,7 +194,7 @@ class MetricsWrapper(Wrapper):
             prev, ms = carry
             # Envs mutate the dicts of the state they are given (Brax's ant updates
             # `state.metrics` in place): give them copies so `prev` stays the pre-step state.
-            with _third_party():
+            with _brax_promotion():
                 nxt = self.env.step(
                     prev.replace(metrics=dict(prev.metrics), info=dict(prev.info)), action
                 )
