@@ -13,7 +13,7 @@ from tensorboard.backend.event_processing import event_accumulator
 
 from jaxmetrics.examples import ppo
 
-# The default config at a tenth of the budget: 30 iterations of 64 envs x 32 steps.
+# The default config at a tenth of its budget: 30 iterations of 64 envs x 32 steps.
 CONFIG = ppo.PPOConfig(total_steps=61_440)
 SHORT = 3  # iterations of the mode/seed comparisons
 SPI = CONFIG.steps_per_iteration

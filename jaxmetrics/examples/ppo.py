@@ -93,7 +93,7 @@ class PPOConfig:
     backend: str = "mjx"
     num_envs: int = 64
     unroll_length: int = 32
-    total_steps: int = 300_000
+    total_steps: int = 600_000
     episode_length: int = 1000
     action_repeat: int = 1
     update_epochs: int = 4
@@ -810,25 +810,26 @@ def _parser() -> argparse.ArgumentParser:
     d = PPOConfig()
     p = argparse.ArgumentParser(
         prog="python -m jaxmetrics.examples.ppo",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description=(
             "Train PPO on a Brax environment (MJX backend) with every metric logged "
             "through jaxmetrics to TensorBoard. The defaults train inverted_pendulum on a "
             "laptop CPU in a few minutes."
         ),
     )
-    p.add_argument("--env", default=d.env_name, help="Brax env name (default: %(default)s)")
-    p.add_argument("--backend", default=d.backend, help="Brax backend (default: %(default)s)")
+    p.add_argument("--env", default=d.env_name, help="Brax env name")
+    p.add_argument("--backend", default=d.backend, help="Brax physics backend")
     p.add_argument("--num-envs", type=int, default=d.num_envs, help="envs per seed")
     p.add_argument("--steps", type=int, default=d.total_steps, help="env steps per seed")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run per seed")
     p.add_argument("--mode", choices=MODES, default="host", help="host loop or one jit")
-    p.add_argument("--log-dir", default=None, help="default: runs/ppo/<env>-<time>")
-    p.add_argument("--episode-length", type=int, default=d.episode_length)
-    p.add_argument("--unroll-length", type=int, default=d.unroll_length)
-    p.add_argument("--epochs", type=int, default=d.update_epochs)
-    p.add_argument("--minibatches", type=int, default=d.num_minibatches)
-    p.add_argument("--learning-rate", type=float, default=d.learning_rate)
-    p.add_argument("--entropy-coef", type=float, default=d.entropy_coef)
+    p.add_argument("--log-dir", default="runs/ppo/<env>-<time>", help="run dirs go here")
+    p.add_argument("--episode-length", type=int, default=d.episode_length, help="time limit")
+    p.add_argument("--unroll-length", type=int, default=d.unroll_length, help="steps per iteration")
+    p.add_argument("--epochs", type=int, default=d.update_epochs, help="passes per batch")
+    p.add_argument("--minibatches", type=int, default=d.num_minibatches, help="per pass")
+    p.add_argument("--learning-rate", type=float, default=d.learning_rate, help="Adam, annealed")
+    p.add_argument("--entropy-coef", type=float, default=d.entropy_coef, help="entropy bonus")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -858,8 +859,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     except ValueError as e:
         _parser().error(str(e))
-    log_dir = args.log_dir or os.path.join(
-        "runs", "ppo", f"{args.env}-{time.strftime('%Y%m%d-%H%M%S')}"
+    log_dir = args.log_dir.replace("<env>", args.env).replace(
+        "<time>", time.strftime("%Y%m%d-%H%M%S")
     )
     with warnings.catch_warnings():
         # Brax 0.14 warns on every env it builds that Brax's own pipelines are not
