@@ -240,5 +240,7 @@ def test_bad_run_arguments_fail_before_any_compile(tmp_path):
         ppo.train(CONFIG, str(tmp_path), mode="jit")
     with pytest.raises(ValueError, match="repeated seeds"):
         ppo.train(CONFIG, str(tmp_path), seeds=(1, 1))
+    with pytest.raises(ValueError, match=r"ints in \[0, 2\*\*32\)"):
+        ppo.train(CONFIG, str(tmp_path), seeds=(-1,))
     with pytest.raises(ValueError, match="iterations"):
         ppo.train(CONFIG, str(tmp_path), iterations=CONFIG.num_iterations + 1)

@@ -721,14 +721,18 @@ def train(
       A `RunResult`.
 
     Raises:
-      ValueError: for an unknown mode, repeated or non-int seeds, a bad `iterations`, or
+      ValueError: for an unknown mode, repeated or negative seeds, a bad `iterations`, or
         (graph mode) a run past 2^31 env steps, whose step would overflow int32.
     """
     if mode not in MODES:
         raise ValueError(f"train(mode={mode!r}): use one of {MODES}.")
     seeds = tuple(seeds)
-    if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) for s in seeds):
-        raise ValueError(f"train(seeds=...) must be a non-empty list of ints, got {seeds!r}.")
+    if not seeds or not all(
+        isinstance(s, int) and not isinstance(s, bool) and 0 <= s < 2**32 for s in seeds
+    ):
+        raise ValueError(
+            f"train(seeds=...) must be a non-empty list of ints in [0, 2**32), got {seeds!r}."
+        )
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"train(seeds=...) has repeated seeds: {seeds!r}.")
     n = config.num_iterations if iterations is None else iterations
