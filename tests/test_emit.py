@@ -154,7 +154,9 @@ def test_emit_nonfinite_raise_surfaces_at_close_after_writing():
 
 
 def test_emit_of_a_state_sharded_over_devices():
-    mesh = jax.make_mesh((2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,))
+    mesh = jax.make_mesh(
+        (2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,), devices=jax.devices("cpu")[:2]
+    )
     env_sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))
     metrics = _make()
     memory = jm.MemoryWriter()
@@ -165,7 +167,8 @@ def test_emit_of_a_state_sharded_over_devices():
         return logger.emit(state, 5, True)
 
     x = jax.device_put(jnp.arange(8.0, dtype=jnp.float32), env_sharded)
-    jax.jit(step)(metrics.init(8), x)
+    with jax.default_device(jax.devices("cpu")[0]):  # also where the default is one GPU
+        jax.jit(step)(metrics.init(8), x)
     logger.close()
     (record,) = memory.records
     assert (record.step, record.scalars["Episode_Metrics/speed"]) == (5, 3.5)

@@ -302,7 +302,9 @@ def test_running_episodes_are_reported_on_request():
 
 
 def test_flush_of_a_state_sharded_over_devices_equals_the_single_device_flush():
-    mesh = jax.make_mesh((2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,))
+    mesh = jax.make_mesh(
+        (2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,), devices=jax.devices("cpu")[:2]
+    )
     env_sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))
     metrics = jm.Metrics(terms={"r": jm.Term(lambda x: x, stats=("mean", "max", "count"))})
     x = jnp.arange(8.0, dtype=jnp.float32)
@@ -310,7 +312,8 @@ def test_flush_of_a_state_sharded_over_devices_equals_the_single_device_flush():
     scalars = []
     for place in (lambda a: a, lambda a: jax.device_put(a, env_sharded)):
         memory = jm.MemoryWriter()
-        with jm.Logger(metrics, [memory]) as logger:
+        # CPU devices (the suite has 2), also where the default backend has one GPU.
+        with jm.Logger(metrics, [memory]) as logger, jax.default_device(jax.devices("cpu")[0]):
             state = jax.jit(metrics.update)(metrics.init(8), place(x), place(done))
             logger.flush(state, 0)
         scalars.append(memory.records[0].scalars)
