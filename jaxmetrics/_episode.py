@@ -51,22 +51,27 @@ class EpisodePlan:
         return slice(start, start + self.sizes[i])
 
 
+# Value of each EpisodeState field at the start of an episode.
+_START = EpisodeState(
+    steps=0, mean=0.0, m2=0.0, sum=0.0, sum_c=0.0, max=-jnp.inf, min=jnp.inf, last=jnp.nan
+)
+
+
 def init(plan: EpisodePlan, num_envs: int) -> EpisodeState:
-    dt = plan.dtype
     n = dict(zip(ORDER, plan.sizes))
-
-    def full(rows: int, v: float) -> jax.Array:
-        return jnp.full((rows, num_envs), v, dt)
-
+    rows = EpisodeState(
+        steps=plan.rows,
+        mean=n["mean"] + n["std"],
+        m2=n["std"],
+        sum=n["sum"],
+        sum_c=n["sum"],
+        max=n["max"],
+        min=n["min"],
+        last=n["last"],
+    )
+    dtypes = EpisodeState(jnp.int32, *(plan.dtype,) * 7)
     return EpisodeState(
-        steps=jnp.zeros((plan.rows, num_envs), jnp.int32),
-        mean=full(n["mean"] + n["std"], 0.0),
-        m2=full(n["std"], 0.0),
-        sum=full(n["sum"], 0.0),
-        sum_c=full(n["sum"], 0.0),
-        max=full(n["max"], -jnp.inf),
-        min=full(n["min"], jnp.inf),
-        last=full(n["last"], jnp.nan),
+        *(jnp.full((r, num_envs), v, dt) for r, v, dt in zip(rows, _START, dtypes))
     )
 
 
@@ -110,9 +115,9 @@ def step(
         axis=0,
     )
     new = EpisodeState(steps, mean, m2, t, sum_c, vmax, vmin, last)
-    fresh = init(plan, x.shape[1])
     d = done[None, :]
-    reset = jax.tree.map(lambda f, v: jnp.where(d, f, v), fresh, new)
+    # Start values as scalars (not fresh arrays), so the reset keeps each field's sharding.
+    reset = EpisodeState(*(jnp.where(d, v0, v) for v0, v in zip(_START, new)))
     return reset, values, steps > 0
 
 

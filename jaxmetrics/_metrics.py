@@ -45,6 +45,22 @@ def _is_numeric(dtype) -> bool:
     )
 
 
+def _like(x: jax.Array, ref: jax.Array) -> jax.Array:
+    """`x` laid out like the state's `ref` over an explicit mesh (a no-op otherwise).
+
+    Under explicit sharding JAX refuses to mix differently sharded operands; the state's
+    layout wins, so a scan carry keeps its type: a replicated state gathers the inputs, a
+    state sharded over envs keeps them sharded.
+    """
+    want = getattr(jax.typeof(ref).sharding, "spec", None)
+    have = getattr(jax.typeof(x).sharding, "spec", None)
+    if want is None or have is None or tuple(want) == tuple(have):
+        return x
+    if all(p is None for p in want) and all(p is None for p in have):
+        return x
+    return jax.sharding.reshard(x, want)
+
+
 def _flatten_terms(terms: Mapping[str, Any], policy: str) -> tuple[list[Term], list[MetricSpec]]:
     if not isinstance(terms, Mapping):
         raise TypeError(
@@ -352,7 +368,8 @@ class Metrics:
                 f"{done.dtype}{list(done.shape)}."
             )
         done = done.astype(jnp.bool_) if done.dtype != jnp.bool_ else done
-        x = self._evaluate(step_input, num_envs)
+        x = _like(self._evaluate(step_input, num_envs), state.episode.steps)
+        done = _like(done, state.episode.steps[0])
         prop = jnp.asarray(self._ep_propagate)[:, None]
         finite = jnp.isfinite(x)
         episode, values, any_step = _episode.step(
@@ -427,6 +444,10 @@ class Metrics:
                 f"Known: {list(self.counter_names)}."
             )
         assert state.counters is not None
+        if isinstance(by, (int, np.integer)) and not isinstance(by, bool):
+            if not 0 <= by < 2**32:
+                raise ValueError(f"increment: `by` must be in [0, 2^32), got {by}.")
+            by = np.uint32(by)  # a Python int >= 2^31 does not fit the default int32
         by = jnp.asarray(by)
         if not jnp.issubdtype(by.dtype, jnp.integer) or by.shape != ():
             raise TypeError(

@@ -142,6 +142,18 @@ def _weight_dtype(dt: jnp.dtype) -> jnp.dtype:
     return jnp.dtype(jnp.float64) if dt == jnp.float64 else jnp.dtype(jnp.float32)
 
 
+def _gathered(x: jax.Array) -> jax.Array:
+    """`x` unsharded, where it is sharded over explicit mesh axes (a no-op otherwise).
+
+    Order-dependent statistics (EMA, windows, histograms) scan the env axis in order;
+    under explicit sharding JAX asks for that axis to be whole first.
+    """
+    spec = getattr(jax.typeof(x).sharding, "spec", None)
+    if spec is None or all(p is None for p in spec):
+        return x
+    return jax.sharding.reshard(x, jax.sharding.PartitionSpec())
+
+
 def _rank(mask: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Arrival rank of each masked-in column of each row, and the number per row."""
     m = mask.astype(jnp.int32)
@@ -151,7 +163,8 @@ def _rank(mask: jax.Array) -> tuple[jax.Array, jax.Array]:
 def _take(rows: tuple[int, ...], x: jax.Array) -> jax.Array:
     if rows == tuple(range(x.shape[0])):
         return x
-    return x[np.asarray(rows, np.int32)]
+    # Static row slices, not a gather: keeps the env axis' sharding unambiguous.
+    return jnp.stack([x[i] for i in rows])
 
 
 def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) -> StreamState:
@@ -162,10 +175,11 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     kf = k.astype(wt)
     na = _count.as_float(s.count, wt)
     has = ~_count.is_zero(s.count)
-    first = jnp.take_along_axis(values, jnp.argmax(mask, axis=1)[:, None], axis=1)[:, 0]
-    # Shifted moments: deviations from the running mean (or the batch's first value) keep
-    # sums of squares small, so float32 stays accurate for data far from zero.
-    shift = jnp.where(has, s.mean, jnp.where(k > 0, first, jnp.zeros_like(first)))
+    bsum = jnp.sum(jnp.where(mask, values, 0), axis=1)
+    # Shifted moments: deviations from the running mean (or, for the first batch, the
+    # batch's plain mean) keep sums of squares small, so float32 stays accurate for data
+    # far from zero. The shift only has to be near the data, not exact.
+    shift = jnp.where(has, s.mean, bsum / jnp.maximum(k, 1).astype(dt))
     d = jnp.where(mask, values - shift[:, None], jnp.zeros_like(values))
     s1 = jnp.sum(d, axis=1)
     s2 = jnp.sum(d * d, axis=1)
@@ -176,14 +190,15 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     delta = mb + (shift - s.mean)
     mean = s.mean + delta * frac.astype(dt)
     m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + delta * delta * (na * frac).astype(dt))
-    total, total_c = kahan_add(s.sum, s.sum_c, jnp.sum(jnp.where(mask, values, 0), axis=1))
+    total, total_c = kahan_add(s.sum, s.sum_c, bsum)
     vmin = jnp.minimum(s.min, jnp.min(jnp.where(mask, values, jnp.inf), axis=1))
     vmax = jnp.maximum(s.max, jnp.max(jnp.where(mask, values, -jnp.inf), axis=1))
 
+    if plan.ema_rows or plan.windows or plan.hists:
+        values, mask = _gathered(values), _gathered(mask)
     ema, ema_w = s.ema, s.ema_w
     if plan.ema_rows:
         ema, ema_w = _ema_add(plan, s, values, mask)
-
     windows = tuple(
         _window_add(g, w, _take(g.rows, values), _take(g.rows, mask))
         for g, w in zip(plan.windows, s.windows)

@@ -54,5 +54,6 @@ def test_env_steps_exact_past_2_pow_31():
     inc = jax.jit(m.increment, static_argnums=1)
     for _ in range(3):
         state = inc(state, "updates", jnp.asarray(2**31 + 7, jnp.uint32))
-    assert m.to_host(m.compute(state))["Counters/updates"] == 3 * (2**31 + 7)
+    state = m.increment(state, "updates", 2**32 - 1)  # a Python int above int32's range
+    assert m.to_host(m.compute(state))["Counters/updates"] == 3 * (2**31 + 7) + 2**32 - 1
     assert isinstance(host["Counters/env_steps"], int)

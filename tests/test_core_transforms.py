@@ -172,6 +172,43 @@ def test_envs_sharded_over_devices_equal_single_device():
     assert_reports_equal(m, sharded, single, rtol=1e-5)
 
 
+def test_explicit_sharding_mesh_equals_single_device():
+    # jax.make_mesh defaults to Explicit axes, where JAX rejects ambiguous gathers and
+    # reductions over a sharded axis; the state from init() stays unsharded here.
+    mesh = jax.make_mesh((2,), ("env",), axis_types=(jax.sharding.AxisType.Explicit,))
+    m = make()
+    xs, dones = data(jax.random.key(5), 10, num_envs=8)
+    single = jax.jit(lambda a, b: rollout(m, a, b))(xs, dones)
+    def sharded_rollout(xs, dones, shard_state):
+        def body(state, inp):
+            x, d = inp
+            state = m.update(state, {"x": x}, d)
+            return m.log(state, {"loss": jnp.mean(x)}), None
+
+        state = m.init(xs.shape[1])
+        if shard_state:
+            episode = jax.sharding.reshard(state.episode, PartitionSpec(None, "env"))
+            state = state._replace(episode=episode)
+        return jax.lax.scan(body, state, (xs, dones))[0]
+
+    for shard_state in (False, True):
+        with jax.set_mesh(mesh):
+            spec = NamedSharding(mesh, PartitionSpec(None, "env"))
+            out = jax.jit(sharded_rollout, static_argnums=2)(
+                jax.device_put(xs, spec), jax.device_put(dones, spec), shard_state
+            )
+        if shard_state:
+            assert jax.typeof(out.episode.steps).sharding.spec == PartitionSpec(None, "env")
+        got, want = m.to_host(m.compute(out)), m.to_host(m.compute(single))
+        for k in got:
+            if k.startswith(("Counters/updates",)):
+                continue
+            np.testing.assert_allclose(
+                np.asarray(got[k], np.float64), np.asarray(want[k], np.float64),
+                rtol=1e-5, atol=1e-6, equal_nan=True, err_msg=k,
+            )
+
+
 def test_empty_spec_has_no_state_and_update_is_identity():
     m = jm.Metrics()
     s = m.init(1024)
