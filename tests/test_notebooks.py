@@ -12,6 +12,7 @@ import json
 import math
 import os
 import re
+import shutil
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -102,7 +103,7 @@ def quickstart(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def training(tmp_path_factory):
-    return execute(
+    executed = execute(
         "training",
         tmp_path_factory.mktemp("training"),
         """{
@@ -115,6 +116,10 @@ def training(tmp_path_factory):
             ).set_index("step").value.to_dict(),
         }""",
     )
+    yield executed
+    # The notebook writes its run to a fresh temporary directory (for users to open in
+    # TensorBoard); the test's copy is not needed once read.
+    shutil.rmtree(executed.probe["log_dir"])
 
 
 @pytest.fixture(scope="module")
