@@ -583,3 +583,19 @@ def test_helper_argument_checks():
     norm = jmb.norm(lambda t: t.state.reward)
     with pytest.raises(ValueError, match=r"must be \[num_envs, D\]"):
         norm.fn(fake_transition({}))
+
+
+def test_step_returns_the_types_reset_gives_so_host_loops_compile_once():
+    # inverted_pendulum builds `done` with Python scalars: weakly typed in step, not in
+    # reset. A jitted host loop feeding step's output back would compile twice.
+    metrics = jm.Metrics(terms={"return": jmb.episode_return()})
+    env = jmb.wrap(envs.get_environment("inverted_pendulum", backend="mjx"), metrics, 10)
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    reset = jax.eval_shape(env.reset, keys)
+    stepped = jax.eval_shape(env.step, reset, jax.ShapeDtypeStruct((2, 1), jnp.float32))
+    assert jax.tree.structure(stepped) == jax.tree.structure(reset)
+    for path, (a, b) in zip(
+        jax.tree_util.tree_flatten_with_path(reset)[0],
+        zip(jax.tree.leaves(reset), jax.tree.leaves(stepped)),
+    ):
+        assert (a.shape, a.dtype, a.weak_type) == (b.shape, b.dtype, b.weak_type), path[0]

@@ -79,6 +79,16 @@ def _brax_promotion():
         yield
 
 
+def _strong_types(tree: Any) -> Any:
+    # Inner envs often build flags with Python scalars (`jnp.where(c, 1.0, 0.0)`), which
+    # are weakly typed in `step` but not in `reset`: a jitted host loop would compile
+    # twice. Every leaf leaves this wrapper with the strong type reset gives it.
+    def strong(x: Any) -> Any:
+        return x.astype(x.dtype) if getattr(jax.typeof(x), "weak_type", False) else x
+
+    return jax.tree.map(strong, tree)
+
+
 def _positive_int(value: Any, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 1:
         raise ValueError(f"MetricsWrapper({name}=...) must be a positive int, got {value!r}.")
@@ -175,7 +185,7 @@ class MetricsWrapper(Wrapper):
             episode_metrics=episode_metrics,
         )
         info[STATE_KEY] = self.metrics.init(done.shape[0])
-        return state.replace(info=info)
+        return _strong_types(state.replace(info=info))
 
     def step(self, state: State, action: jax.Array) -> State:
         info = dict(state.info)
@@ -238,7 +248,7 @@ class MetricsWrapper(Wrapper):
             episode_metrics=episode_metrics,
         )
         new_info[STATE_KEY] = mstate
-        return nstate.replace(reward=reward, done=done, info=new_info)
+        return _strong_types(nstate.replace(reward=reward, done=done, info=new_info))
 
 
 def wrap(
