@@ -1,0 +1,130 @@
+"""Scenario 4: what a flush moves device -> host and how long it takes, against num_envs.
+
+A flush is `compute` + `reset_period` (jitted, the state donated) and the copy of the
+report to the host. Neither touches the per-env episode accumulators, so the cost
+should not depend on num_envs.
+"""
+
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxmetrics as jm
+
+from . import _workload as wl
+from ._isolated import _metrics_scan, inputs
+from ._report import Table
+from ._timing import tree_bytes
+
+FILL_STEPS = 20
+
+
+def _flush_fn(metrics: jm.Metrics):
+    def flush(state):
+        return metrics.compute(state), metrics.reset_period(state)
+
+    return flush
+
+
+def _packed_flush_fn(metrics: jm.Metrics):
+    # The same report as two flat buffers (floats, uint32 counts): two transfers, not one
+    # per report entry.
+    def flush(state):
+        leaves = jax.tree.leaves(metrics.compute(state))
+        floats = [x.reshape(-1) for x in leaves if jnp.issubdtype(x.dtype, jnp.floating)]
+        ints = [x.reshape(-1) for x in leaves if not jnp.issubdtype(x.dtype, jnp.floating)]
+        return (jnp.concatenate(floats), jnp.concatenate(ints)), metrics.reset_period(state)
+
+    return flush
+
+
+def _time(fn, state, repeats: int, host: Any) -> tuple[float, Any]:
+    """Median seconds of `host(fn(state))`, threading the donated state through."""
+    samples = []
+    for i in range(repeats + 1):
+        t0 = time.perf_counter()
+        report, state = fn(state)
+        out = host(report)
+        if i:  # the first call is the warm-up
+            samples.append(time.perf_counter() - t0)
+    return float(np.median(samples)), (out, state)
+
+
+def _time_logger(spec: jm.Metrics, state: Any, repeats: int) -> tuple[float, float, Any]:
+    """`jm.Logger.flush` into a `MemoryWriter`: the call alone (what the training loop
+    waits for: dispatch + the start of an asynchronous copy), and flush + `wait()` (until
+    the record is written)."""
+    calls, waits = [], []
+    with jm.Logger(spec, [jm.MemoryWriter()]) as logger:
+        for i in range(repeats + 1):
+            jax.block_until_ready(state)
+            t0 = time.perf_counter()
+            state = logger.flush(state, step=i)
+            t1 = time.perf_counter()
+            logger.wait()
+            t2 = time.perf_counter()
+            if i:
+                calls.append(t1 - t0)
+                waits.append(t2 - t0)
+    return float(np.median(calls)), float(np.median(waits)), state
+
+
+def flush(env_list: list[int], repeats: int) -> Table:
+    t = Table(
+        "flush",
+        "Flush: device -> host bytes and wall time per flush (10 terms)",
+        [
+            "num_envs",
+            "report entries",
+            "bytes to host",
+            "state bytes",
+            "compute+reset ms",
+            "device_get ms",
+            "to_host ms",
+            "packed ms",
+            "Logger.flush ms",
+            "Logger flush+wait ms",
+        ],
+    )
+    spec = wl.random_spec(10)
+    fill = jax.jit(_metrics_scan(spec))
+    for n in env_list:
+        xs, dones = inputs(n, FILL_STEPS, seed=1)
+        state = jax.block_until_ready(fill(spec.init(n), xs, dones))
+        del xs, dones
+        flush_jit = jax.jit(_flush_fn(spec), donate_argnums=0)
+        packed_jit = jax.jit(_packed_flush_fn(spec), donate_argnums=0)
+        report, state = flush_jit(state)
+        nbytes, entries = tree_bytes(report), len(report)
+        dev_s, (_, state) = _time(flush_jit, state, repeats, jax.block_until_ready)
+        get_s, (_, state) = _time(flush_jit, state, repeats, jax.device_get)
+        host_s, (_, state) = _time(flush_jit, state, repeats, spec.to_host)
+        pk_s, (out, state) = _time(packed_jit, state, repeats, jax.device_get)
+        call_s, wait_s, state = _time_logger(spec, state, repeats)
+        t.add(
+            n,
+            entries,
+            nbytes,
+            tree_bytes(state),
+            dev_s * 1e3,
+            get_s * 1e3,
+            host_s * 1e3,
+            pk_s * 1e3,
+            call_s * 1e3,
+            wait_s * 1e3,
+        )
+        t.data[str(n)] = {"packed_bytes": int(sum(a.nbytes for a in out))}
+    t.notes += [
+        "compute+reset: the jitted `compute` + `reset_period` (state donated), blocked on; "
+        "device_get: that plus `jax.device_get` of the report dict (one copy per entry); "
+        "to_host: that plus `Metrics.to_host` (floats, exact ints, numpy arrays); packed: "
+        "the same report concatenated in-graph into one float and one uint32 buffer, "
+        "then `device_get` (two copies); Logger.flush: `jm.Logger(spec, [MemoryWriter()])"
+        ".flush(state, step)`, the call alone (asynchronous copy and writer thread) and "
+        "with `wait()` until the record is written. Each a median over "
+        f"{repeats} flushes after a warm-up; the state was filled by {FILL_STEPS} random steps.",
+    ]
+    return t

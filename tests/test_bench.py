@@ -1,0 +1,164 @@
+"""The benchmark suite at a tiny size: its output structure, and that what it times reports
+the right numbers. No timing assertions (speed claims live in docs/benchmarks.md).
+
+References: numpy float64 unrolled from the same random inputs (isolated scenario), the
+hand-written floor and the host loggers against jaxmetrics on the same rollout (end to
+end, on the CPU where separately compiled rollouts are deterministic).
+"""
+
+import contextlib
+import io
+import json
+
+import numpy as np
+import pytest
+
+from jaxmetrics import bench
+from jaxmetrics.bench import _isolated
+
+NUM_ENVS, STEPS = 64, 50
+ROLLOUT_STEPS = 30
+ARGS = [
+    "--quick",
+    "--num-envs", str(NUM_ENVS),
+    "--steps", str(STEPS),
+    "--repeats", "1",
+    "--scale-envs", "16,32",
+    "--scale-terms", "1,3",
+    "--scale-windows", "4,16",
+    "--scale-steps", "10",
+    "--scale-repeats", "1",
+    "--flush-envs", "16,64",
+    "--flush-repeats", "2",
+    "--env", "inverted_pendulum",
+    "--e2e-envs", "4",
+    "--e2e-steps", str(ROLLOUT_STEPS),
+    "--e2e-repeats", "1",
+    "--host-steps", str(ROLLOUT_STEPS),
+    "--host-repeats", "1",
+    "--e2e-variants", "empty,floor,callback_numpy",
+]  # fmt: skip
+SCENARIOS = {
+    "isolated",
+    "scaling_envs",
+    "scaling_terms",
+    "scaling_window",
+    "flush",
+    "end_to_end",
+    "alternatives",
+    "targets",
+}
+
+
+@pytest.fixture(scope="module")
+def result(tmp_path_factory):
+    path = tmp_path_factory.mktemp("bench") / "out.json"
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        tables = bench.main([*ARGS, "--json", str(path)])
+    with open(path) as f:
+        doc = json.load(f)
+    return doc, tables, printed.getvalue()
+
+
+def test_json_has_environment_and_every_scenario(result):
+    doc, tables, _ = result
+    env = doc["environment"]
+    for key in ("date", "machine", "device", "versions", "command"):
+        assert env[key], key
+    assert env["device"]["backend"] == "cpu"
+    assert env["versions"]["jax"] and env["versions"]["jaxmetrics"]
+    assert doc["config"]["preset"] == "quick"
+    assert doc["config"]["num_envs"] == NUM_ENVS
+    assert set(doc["scenarios"]) == SCENARIOS
+    assert [t.name for t in tables] == list(doc["scenarios"])
+    for name, s in doc["scenarios"].items():
+        assert s["rows"], name
+        for row in s["rows"]:
+            assert len(row) == len(s["columns"]), name
+
+
+def test_tables_are_printed_as_markdown(result):
+    doc, _, printed = result
+    for s in doc["scenarios"].values():
+        assert f"### {s['title']}" in printed
+        assert "| " + " | ".join(s["columns"]) + " |" in printed
+
+
+def test_rows_cover_the_requested_sizes(result):
+    doc, _, _ = result
+    sc = doc["scenarios"]
+    assert [r[0] for r in sc["scaling_envs"]["rows"]] == [16, 32]
+    assert [r[0] for r in sc["scaling_terms"]["rows"]] == [1, 3]
+    assert [r[0] for r in sc["scaling_window"]["rows"]] == [4, 16]
+    assert [r[0] for r in sc["flush"]["rows"]] == [16, 64]
+    # State grows with num_envs and window size; what a flush moves does not.
+    state = [r[5] for r in sc["scaling_envs"]["rows"]]
+    assert state[1] > state[0]
+    wstate = [r[3] for r in sc["scaling_window"]["rows"]]
+    assert wstate[1] - wstate[0] == 2 * (16 - 4) * 4  # two windowed float32 rows
+    assert len({r[2] for r in sc["flush"]["rows"]}) == 1
+    e2e = [r[0] for r in sc["end_to_end"]["rows"]]
+    assert len(e2e) == 4 and e2e[0] == "bare rollout" and "empty spec" in e2e[1]
+    alt = [r[0] for r in sc["alternatives"]["rows"]]
+    assert len(alt) == 3 and "debug.callback" in alt[2]
+
+
+def _episode_sums_f64(xs: np.ndarray, dones: np.ndarray, row: int) -> tuple[float, int]:
+    """Sum over finished episodes of each episode's sum of row `row`, unrolled in float64."""
+    running = np.zeros(xs.shape[2])
+    total, episodes = 0.0, 0
+    for t in range(xs.shape[0]):
+        running += xs[t, row].astype(np.float64)
+        for e in np.flatnonzero(dones[t]):
+            total += running[e]
+            running[e] = 0.0
+            episodes += 1
+    return total, episodes
+
+
+def test_isolated_floor_and_jaxmetrics_match_a_float64_reference(result):
+    doc, _, _ = result
+    check = doc["scenarios"]["isolated"]["data"]["check"]
+    xs, dones = (np.asarray(a) for a in _isolated.inputs(NUM_ENVS, STEPS))
+    want_episodes = int(dones.sum())
+    assert want_episodes > 0
+    assert check["episodes"] == want_episodes
+    assert check["counts"] == [want_episodes] * 10 and check["counts_equal"]
+    # Sum-reduced terms m0, m1 read rows 0, 1 of the inputs.
+    assert set(check["jaxmetrics_sums"]) == {"m0", "m1"}
+    for row, name in enumerate(("m0", "m1")):
+        want, _ = _episode_sums_f64(xs, dones, row)
+        np.testing.assert_allclose(check["jaxmetrics_sums"][name], want, rtol=1e-6)
+        np.testing.assert_allclose(check["floor_totals"][name], want, rtol=1e-5)
+
+
+def test_rollout_loggers_report_the_same_episodes(result):
+    doc, _, _ = result
+    check = doc["scenarios"]["end_to_end"]["data"]["check"]
+    alt = doc["scenarios"]["alternatives"]
+    assert check["episodes"] > 0 and check["counts_equal"]
+    assert check["empty_lowers_to_bare"] is True
+    assert check["max_rel_diff_sum"] < 1e-5
+    # Same rollout length for every logger: each saw the same episodes.
+    assert {r[5] for r in alt["rows"]} == {check["episodes"]}
+    numpy_totals = alt["data"]["host_numpy_totals"]
+    for i, name in enumerate(("reward", "abs_reward")):
+        np.testing.assert_allclose(numpy_totals[i], check["floor_totals"][name], rtol=1e-5)
+        np.testing.assert_allclose(numpy_totals[i], check["jaxmetrics_sums"][name], rtol=1e-5)
+
+
+def test_targets_table_judges_what_ran(result):
+    doc, _, _ = result
+    rows = {r[0]: r for r in doc["scenarios"]["targets"]["rows"]}
+    assert "isolated update <= 1.5x the floor" in rows
+    assert "end-to-end overhead <= 2% (10 terms)" in rows
+    assert rows["empty spec indistinguishable from bare"][2] is True
+    assert rows["bytes to host flat in num_envs"][2] is True
+
+
+@pytest.mark.parametrize("flag", ["--scenarios", "--e2e-variants"])
+def test_unknown_names_are_refused(capsys, flag):
+    with pytest.raises(SystemExit):
+        bench.main([flag, "floor,nope"])
+    assert f"unknown {flag[2:]} " in capsys.readouterr().err
