@@ -88,9 +88,11 @@ def step(
     welford = slice(b("mean").start, b("std").stop)
     xw, fw = x[welford], fold[welford]
     nw = jnp.maximum(steps[welford], 1).astype(plan.dtype)
-    # An infinite mean stays infinite under finite steps (as numpy's mean does) instead of
-    # turning into NaN through inf - inf; only "propagate" lets infinities in at all.
-    delta = jnp.where(fw & ~(jnp.isinf(ep.mean) & jnp.isfinite(xw)), xw - ep.mean, 0)
+    # An infinite mean stays infinite under finite steps or the same infinity (as numpy's
+    # mean does) instead of turning into NaN through inf - inf; only "propagate" lets
+    # infinities in at all.
+    stays = jnp.isinf(ep.mean) & (jnp.isfinite(xw) | (xw == ep.mean))
+    delta = jnp.where(fw & ~stays, xw - ep.mean, 0)
     mean = ep.mean + delta / nw
     std_in_w = slice(b("std").start - welford.start, b("std").stop - welford.start)
     m2 = ep.m2 + jnp.where(fw[std_in_w], delta[std_in_w] * (xw - mean)[std_in_w], 0)

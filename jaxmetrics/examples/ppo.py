@@ -386,12 +386,6 @@ class PPO(NamedTuple):
     iteration: Callable[[TrainState], TrainState]
 
 
-def _strip_weak_types(tree: Any) -> Any:
-    # Brax's step returns weakly-typed leaves where reset does not; one jit cache entry
-    # needs identical input types on every iteration.
-    return jax.tree.map(lambda x: jnp.asarray(x, dtype=jnp.asarray(x).dtype), tree)
-
-
 def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
     """Builds the env, the metrics spec and the pure `init`/`iteration` functions.
 
@@ -448,15 +442,13 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
         params = network.init(k_net, jnp.zeros((1, obs_size), jnp.float32))
         with _third_party():
             opt_state = optimizer.init(params)
-        return _strip_weak_types(
-            TrainState(
-                params=params,
-                opt_state=opt_state,
-                obs_stats=init_obs_stats(obs_size),
-                env_state=env_state,
-                key=k_next,
-                iteration=jnp.zeros((), jnp.int32),
-            )
+        return TrainState(
+            params=params,
+            opt_state=opt_state,
+            obs_stats=init_obs_stats(obs_size),
+            env_state=env_state,
+            key=k_next,
+            iteration=jnp.zeros((), jnp.int32),
         )
 
     def loss_fn(params, batch):
@@ -557,9 +549,7 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
         env_state = jmb.replace_metrics_state(env_state, mstate)
         if c.normalize_observations:
             stats = update_obs_stats(stats, traj["raw_obs"])
-        return _strip_weak_types(
-            TrainState(params, opt_state, stats, env_state, key, ts.iteration + 1)
-        )
+        return TrainState(params, opt_state, stats, env_state, key, ts.iteration + 1)
 
     return PPO(config, env, metrics, network, init, iteration)
 
