@@ -10,6 +10,8 @@ from collections import deque
 
 import numpy as np
 
+SIMPLE_STATS = ("mean", "std", "min", "max", "sum", "count")
+
 
 def episode_value(values: list[float], reduce: str, skip_nonfinite: bool) -> float | None:
     """The value of one finished episode, or None when it has no (finite) step."""
@@ -47,6 +49,24 @@ def _percentile(w: np.ndarray, p: float) -> float:
     if pos == lo:
         return float(a[lo])
     return float(a[lo] + (a[lo + 1] - a[lo]) * (pos - lo))
+
+
+def episode_values(values, dones, reduce: str) -> np.ndarray:
+    """Every finished episode's value in report order (by step, then env index), float64.
+
+    `values` and `dones` are `[steps, num_envs]` records of one rollout.
+    """
+    values = np.asarray(values, np.float64)
+    dones = np.asarray(dones, bool)
+    running: list[list[float]] = [[] for _ in range(values.shape[1])]
+    out = []
+    for t in range(values.shape[0]):
+        for e in range(values.shape[1]):
+            running[e].append(float(values[t, e]))
+            if dones[t, e]:
+                out.append(episode_value(running[e], reduce, skip_nonfinite=False))
+                running[e] = []
+    return np.asarray(out, np.float64)
 
 
 class RefStream:

@@ -16,6 +16,7 @@ from brax import envs
 from brax.envs.base import State
 from brax.envs.inverted_pendulum import InvertedPendulum
 from brax.envs.wrappers import training as brax_training
+from reference import episode_values
 
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb
@@ -93,29 +94,6 @@ def make_metrics():
         "upright_per_s": jmb.state_metrics(["upright"], per_second=True, stats=STATS)["upright"],
     }
     return jm.Metrics(terms=terms)
-
-
-def episode_values(values, dones, reduce):
-    """Per-episode values in report order (by step, then env index), float64."""
-    values = np.asarray(values, np.float64)
-    dones = np.asarray(dones, bool)
-    fns = {
-        "mean": np.mean,
-        "sum": np.sum,
-        "max": np.max,
-        "min": np.min,
-        "last": lambda x: x[-1],
-        "std": np.std,
-    }
-    running = [[] for _ in range(values.shape[1])]
-    out = []
-    for t in range(values.shape[0]):
-        for e in range(values.shape[1]):
-            running[e].append(values[t, e])
-            if dones[t, e]:
-                out.append(fns[reduce](np.array(running[e])))
-                running[e] = []
-    return np.array(out)
 
 
 def reported(report, name):

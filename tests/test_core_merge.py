@@ -7,18 +7,13 @@ import jax.numpy as jnp
 import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from reference import RefStream
+from reference import SIMPLE_STATS, RefStream
 
 import jaxmetrics as jm
 
 WINDOW = 4
 STATS = (
-    "mean",
-    "std",
-    "min",
-    "max",
-    "sum",
-    "count",
+    *SIMPLE_STATS,
     jm.ema(0.2),
     jm.window(WINDOW, (50,)),
     jm.histogram(6, (-30.0, 30.0)),

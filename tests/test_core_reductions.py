@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from reference import RefEpisodes, RefStream
+from reference import SIMPLE_STATS, RefEpisodes, RefStream
 
 import jaxmetrics as jm
 
@@ -23,12 +23,7 @@ WINDOW = 3
 PCTS = (0.0, 25.0, 50.0, 90.0, 100.0)
 HIST = (8, -50.0, 50.0)
 STATS = (
-    "mean",
-    "std",
-    "min",
-    "max",
-    "sum",
-    "count",
+    *SIMPLE_STATS,
     jm.ema(EMA_C),
     jm.window(WINDOW, PCTS),
     jm.histogram(HIST[0], HIST[1:]),

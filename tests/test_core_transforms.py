@@ -6,17 +6,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from reference import SIMPLE_STATS
 
 import jaxmetrics as jm
 
 E = 4
 STATS = (
-    "mean",
-    "std",
-    "min",
-    "max",
-    "sum",
-    "count",
+    *SIMPLE_STATS,
     jm.ema(0.1),
     jm.window(5, (50,)),
     jm.histogram(4, (0.0, 1.0)),
@@ -179,6 +175,7 @@ def test_explicit_sharding_mesh_equals_single_device():
     m = make()
     xs, dones = data(jax.random.key(5), 10, num_envs=8)
     single = jax.jit(lambda a, b: rollout(m, a, b))(xs, dones)
+
     def sharded_rollout(xs, dones, shard_state):
         def body(state, inp):
             x, d = inp
@@ -204,8 +201,12 @@ def test_explicit_sharding_mesh_equals_single_device():
             if k.startswith(("Counters/updates",)):
                 continue
             np.testing.assert_allclose(
-                np.asarray(got[k], np.float64), np.asarray(want[k], np.float64),
-                rtol=1e-5, atol=1e-6, equal_nan=True, err_msg=k,
+                np.asarray(got[k], np.float64),
+                np.asarray(want[k], np.float64),
+                rtol=1e-5,
+                atol=1e-6,
+                equal_nan=True,
+                err_msg=k,
             )
 
 

@@ -14,6 +14,7 @@ import mujoco
 import numpy as np
 import pytest
 from mujoco import mjx
+from reference import episode_values
 
 import jaxmetrics as jm
 
@@ -35,21 +36,6 @@ STEPS = 50
 TIME_LIMIT = 0.5  # seconds: 25 steps
 FALLEN = 0.5  # radians
 STATS = ("mean", "std", "min", "max", "count", jm.window(128))
-
-
-def episode_values(values, dones, reduce):
-    """Per-episode values in report order (by step, then env index), float64."""
-    values = np.asarray(values, np.float64)
-    fns = {"mean": np.mean, "sum": np.sum, "max": np.max, "last": lambda x: x[-1]}
-    running = [[] for _ in range(values.shape[1])]
-    out = []
-    for t in range(values.shape[0]):
-        for e in range(values.shape[1]):
-            running[e].append(values[t, e])
-            if dones[t, e]:
-                out.append(fns[reduce](np.array(running[e])))
-                running[e] = []
-    return np.array(out)
 
 
 def make_step(model):
