@@ -269,6 +269,19 @@ def _window_add(g: WindowGroup, w: WindowState, values, mask, r, k) -> WindowSta
     return WindowState(buf, (w.pos + stored) % n, jnp.minimum(w.filled + stored, n))
 
 
+def slot_counts_scatter(slot: jax.Array, nslots: int) -> jax.Array:
+    """Per row, how many entries of `slot[R, B]` equal each of 0..nslots-1 (others ignored)."""
+    rows = jnp.broadcast_to(jnp.arange(slot.shape[0], dtype=jnp.int32)[:, None], slot.shape)
+    zeros = jnp.zeros((slot.shape[0], nslots), jnp.int32)
+    return zeros.at[rows, slot].add(1, mode="drop")
+
+
+def slot_counts_compare(slot: jax.Array, nslots: int) -> jax.Array:
+    """Same as `slot_counts_scatter`, as one compare-and-sum reduction."""
+    bins = jnp.arange(nslots, dtype=jnp.int32)[None, :, None]
+    return jnp.sum(slot[:, None, :] == bins, axis=2, dtype=jnp.int32)
+
+
 def _hist_add(g: HistGroup, h: Count, values, mask, dt) -> Count:
     lo = jnp.asarray(g.lo, dt)[:, None]
     hi = jnp.asarray(g.hi, dt)[:, None]
@@ -276,20 +289,13 @@ def _hist_add(g: HistGroup, h: Count, values, mask, dt) -> Count:
     inner = jnp.clip(jnp.nan_to_num(t), 0, g.bins - 1).astype(jnp.int32) + 1
     slot = jnp.where(values < lo, 0, jnp.where(values > hi, g.bins + 1, inner))
     slot = jnp.where(mask & ~jnp.isnan(values), slot, g.bins + 2)  # matches no bin
-    nslots = g.bins + 2
-
-    def scatter(slot):
-        rows = jnp.broadcast_to(jnp.arange(slot.shape[0], dtype=jnp.int32)[:, None], slot.shape)
-        zeros = jnp.zeros((slot.shape[0], nslots), jnp.int32)
-        return zeros.at[rows, slot].add(1, mode="drop")
-
-    def compare(slot):
-        bins = jnp.arange(nslots, dtype=jnp.int32)[None, :, None]
-        return jnp.sum(slot[:, None, :] == bins, axis=2, dtype=jnp.int32)
-
     # On accelerators, compare-and-count is one fused reduction where a scatter-add is a
     # zero fill plus an atomic scatter kernel; on CPU the scatter is ~3x cheaper.
-    inc = jax.lax.platform_dependent(slot, cpu=scatter, default=compare)
+    inc = jax.lax.platform_dependent(
+        slot,
+        cpu=lambda x: slot_counts_scatter(x, g.bins + 2),
+        default=lambda x: slot_counts_compare(x, g.bins + 2),
+    )
     return _count.add(h, inc)
 
 

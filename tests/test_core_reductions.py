@@ -312,3 +312,17 @@ def test_bool_and_int_outputs_accepted(dtype):
     m = jm.Metrics(terms={"x": jm.Term(lambda s: s.astype(dtype), reduce="sum")})
     state = m.update(m.init(3), jnp.asarray([1.0, 0.0, 1.0]), jnp.ones(3, bool))
     assert m.to_host(m.compute(state))["Episode_Metrics/x/max"] == 1.0
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.integers(0, 12), min_size=1, max_size=40), st.integers(1, 3))
+def test_both_histogram_counting_paths_match_numpy(slots, rows):
+    # The CPU lowering scatters, accelerators compare-and-count (lax.platform_dependent):
+    # both are checked here, since CI has no accelerator. Slot 11 and 12 match no bin.
+    from jaxmetrics._stream import slot_counts_compare, slot_counts_scatter
+
+    slot = np.tile(np.asarray(slots, np.int32), (rows, 1))
+    slot[1:] = (slot[1:] + np.arange(1, rows)[:, None]) % 13
+    want = np.stack([np.bincount(r[r < 11], minlength=11) for r in slot])
+    for fn in (slot_counts_scatter, slot_counts_compare):
+        np.testing.assert_array_equal(jax.jit(fn, static_argnums=1)(jnp.asarray(slot), 11), want)
