@@ -767,9 +767,23 @@ def _batched(fn: Callable[..., Any], runs: int) -> Callable[..., Any]:
     return jax.jit(fn if runs == 1 else jax.vmap(fn))
 
 
+def _init_states(ppo: PPO, keys: jax.Array, runs: int) -> TrainState:
+    """The initial state of every run, stacked on a leading axis when `runs > 1`.
+
+    One seed at a time, not vmapped: a vmapped init batches the orthogonal initializers'
+    QR factorizations, which jaxlib's CPU LAPACK kernel (0.10) splits with a blocking
+    ParallelBatchMap on XLA's own thread pool; on a 2-core machine both pool threads can
+    end up waiting on each other (seen as a hang in CI).
+    """
+    init = jax.jit(ppo.init)
+    if runs == 1:
+        return init(keys[0])
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *(init(k) for k in keys))
+
+
 def _train_host(ppo: PPO, logger: jm.Logger, keys: jax.Array, n: int) -> TrainState:
     runs, spi = logger.runs, ppo.config.steps_per_iteration
-    state = _batched(ppo.init, runs)(keys[0] if runs == 1 else keys)
+    state = _init_states(ppo, keys, runs)
     iteration = _batched(ppo.iteration, runs)
     for i in range(n):
         state = iteration(state)
@@ -781,7 +795,7 @@ def _train_host(ppo: PPO, logger: jm.Logger, keys: jax.Array, n: int) -> TrainSt
 def _train_graph(ppo: PPO, logger: jm.Logger, keys: jax.Array, n: int) -> TrainState:
     spi = ppo.config.steps_per_iteration
 
-    def run(key: jax.Array, run_index: jax.Array) -> TrainState:
+    def run(state: TrainState, run_index: jax.Array) -> TrainState:
         def body(state: TrainState, _: None) -> tuple[TrainState, None]:
             state = ppo.iteration(state)
             step = state.iteration * jnp.int32(spi)
@@ -792,11 +806,12 @@ def _train_graph(ppo: PPO, logger: jm.Logger, keys: jax.Array, n: int) -> TrainS
                 env_state=jmb.replace_metrics_state(state.env_state, mstate)
             ), None
 
-        return jax.lax.scan(body, ppo.init(key), None, length=n)[0]
+        return jax.lax.scan(body, state, None, length=n)[0]
 
     runs = logger.runs
     run_indices = jnp.arange(runs, dtype=jnp.int32)
-    args = (keys[0], run_indices[0]) if runs == 1 else (keys, run_indices)
+    state = _init_states(ppo, keys, runs)
+    args = (state, run_indices[0]) if runs == 1 else (state, run_indices)
     return jax.block_until_ready(_batched(run, runs)(*args))
 
 
