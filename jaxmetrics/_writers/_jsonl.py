@@ -6,7 +6,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from .._metrics import TagInfo
-from ._record import Record
+from ._record import Record, fs_path
 
 
 def record_to_json(record: Record) -> dict[str, Any]:
@@ -54,12 +54,7 @@ class JsonlWriter:
     """
 
     def __init__(self, path: str | os.PathLike):
-        try:
-            p = os.fspath(path)
-        except TypeError:
-            raise TypeError(f"JsonlWriter: path must be a file path, got {path!r}.") from None
-        if not isinstance(p, str) or not p:
-            raise ValueError(f"JsonlWriter: path must be a non-empty file path, got {path!r}.")
+        p = fs_path(path, "JsonlWriter", "path", "file path")
         self.path = p
         try:
             parent = os.path.dirname(p)

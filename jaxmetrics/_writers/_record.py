@@ -1,8 +1,9 @@
 """What a writer receives: one `Record` per run per flush, and the `Writer` protocol."""
 
 import dataclasses
+import os
 from collections.abc import Mapping, Sequence
-from typing import NamedTuple, Protocol, runtime_checkable
+from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -63,3 +64,14 @@ class Writer(Protocol):
     def write(self, record: Record) -> None: ...
 
     def close(self) -> None: ...
+
+
+def fs_path(value: Any, who: str, name: str, kind: str) -> str:
+    """`value` as a non-empty filesystem path string, or an error naming the argument."""
+    try:
+        path = os.fspath(value)
+    except TypeError:
+        raise TypeError(f"{who}: {name} must be a {kind}, got {value!r}.") from None
+    if not isinstance(path, str) or not path:
+        raise ValueError(f"{who}: {name} must be a non-empty {kind}, got {value!r}.")
+    return path

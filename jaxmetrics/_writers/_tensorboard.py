@@ -9,18 +9,13 @@ import numpy as np
 
 from .. import _tags
 from .._metrics import TagInfo
-from ._record import HistogramData, Record
+from ._record import HistogramData, Record, fs_path
 
 _HPARAM_TYPES = (bool, int, float, str)
 
 
 def _check_dir(logdir: Any, who: str) -> str:
-    try:
-        path = os.fspath(logdir)
-    except TypeError:
-        raise TypeError(f"{who}: logdir must be a path, got {logdir!r}.") from None
-    if not isinstance(path, str) or not path:
-        raise ValueError(f"{who}: logdir must be a non-empty path, got {logdir!r}.")
+    path = fs_path(logdir, who, "logdir", "path")
     try:
         os.makedirs(path, exist_ok=True)
     except (OSError, ValueError) as e:
