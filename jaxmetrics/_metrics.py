@@ -212,7 +212,6 @@ class Metrics:
         order = sorted(range(len(ep_specs)), key=lambda i: _episode.ORDER.index(ep_specs[i].reduce))
         self._ep_rows = tuple(ep_specs[i] for i in order)
         self._ep_defined = tuple(ep_specs)  # definition order, for the tag table
-        self._ep_index = {s.name: i for i, s in enumerate(self._ep_rows)}
         self._episode_plan = _episode.EpisodePlan.build([s.reduce for s in self._ep_rows], dt)
         self._ep_plan = _stream.StreamPlan.build(self._ep_rows, dt) if ep_specs else None
         self._lg_plan = _stream.StreamPlan.build(lg_specs, dt) if lg_specs else None
@@ -291,7 +290,7 @@ class Metrics:
 
     def _evaluate(self, step_input: Any, num_envs: int) -> jax.Array:
         values: dict[str, jax.Array] = {}
-        for name, term in zip((s for s in self._term_names()), self._terms):
+        for name, term in zip(self._term_names(), self._terms):
             out = term.fn(step_input, **term.params)
             if term.outputs is None:
                 values[name] = self._check_value(out, name, num_envs)

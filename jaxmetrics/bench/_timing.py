@@ -23,11 +23,6 @@ class Timing:
     max_s: float
     repeats: int
 
-    @property
-    def spread(self) -> float:
-        """(max - min) / median: how noisy the repeats were."""
-        return (self.max_s - self.min_s) / self.median_s if self.median_s > 0 else 0.0
-
 
 @dataclasses.dataclass(frozen=True)
 class Variant:
