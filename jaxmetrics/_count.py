@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._layout import gathered
+
 _TWO_32 = 4294967296.0
 
 
@@ -62,3 +64,12 @@ def to_int(count: Count) -> int | np.ndarray:
     if exact.ndim == 0:
         return int(exact)
     return exact.astype(np.int64)
+
+
+def total(count: Count) -> Count:
+    """Exact sum of a count along its leading axis (a scalar count for a `[n]` one)."""
+    count = Count(gathered(count.hi), gathered(count.lo))
+    zero = zeros(count.hi.shape[1:])
+    if count.hi.shape[0] == 0:
+        return zero
+    return jax.lax.scan(lambda acc, c: (merge(acc, Count(*c)), None), zero, tuple(count))[0]

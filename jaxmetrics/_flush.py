@@ -22,6 +22,7 @@ import numpy as np
 
 from . import _tags
 from ._emit import InGraphEmit
+from ._layout import mesh_of, placed, replicated
 from ._metrics import Metrics, NonFiniteError, TagInfo
 from ._state import MetricsState
 from ._timer import Timers
@@ -48,6 +49,14 @@ def _derived_tags(metrics: Metrics, include_running: bool) -> list[TagInfo]:
     return out
 
 
+def _unused(writers: WritersArg, runs: int) -> list[list[Writer]]:
+    """Writers of a process other than 0: a factory is never called (nothing is created);
+    writers already made are closed unused."""
+    if not callable(writers) or isinstance(writers, Writer):
+        _close_quietly([list(writers)] if not isinstance(writers, Writer) else [[writers]])
+    return [[] for _ in range(runs)]
+
+
 def _close_quietly(writers: Sequence[Sequence[Any]]) -> None:
     """Closes what was created before a construction error (that error is what matters)."""
     for ws in writers:
@@ -58,6 +67,21 @@ def _close_quietly(writers: Sequence[Sequence[Any]]) -> None:
                     close()
                 except Exception:  # noqa: BLE001, S110
                     pass
+
+
+class _Layout:
+    """A state's tree of shardings as a cache key (compared by value)."""
+
+    def __init__(self, tree: MetricsState):
+        self.finished = tree.finished
+        leaves, treedef = jax.tree.flatten(tree)
+        self._key = (tuple(leaves), treedef)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Layout) and self._key == other._key
+
+    def __hash__(self) -> int:
+        return hash(self._key)
 
 
 class _Check(NamedTuple):
@@ -223,7 +247,9 @@ class Logger(AbstractContextManager):
         _tags.check_unique((i.tag, f"{i.group} {i.metric!r} ({i.stat})") for i in self.tags)
         self._timer_prefix = timer_prefix
         self._timer_tags: set[str] = set()
-        self._writers = self._make_writers(writers, runs)
+        # Under jax.distributed every process runs the same program; process 0 writes.
+        self.writes = jax.process_index() == 0
+        self._writers = self._make_writers(writers, runs) if self.writes else _unused(writers, runs)
         infos = {i.tag: i for i in self.tags}
         edges = {
             i.tag: metrics.histogram_edges(i.tag) for i in metrics.tags if i.stat == "histogram"
@@ -238,9 +264,23 @@ class Logger(AbstractContextManager):
 
         def compute_reset(state):
             new = metrics.reset_period(state)
-            return compute(state), new.episodes, new.logged
+            return compute(state), new.finished, new.logged
 
-        self._flush_fn = jax.jit(compute_reset if runs == 1 else jax.vmap(compute_reset))
+        batched = compute_reset if runs == 1 else jax.vmap(compute_reset)
+
+        def flush_fn(mesh: jax.sharding.Mesh | None, layout: Any) -> Callable[..., Any]:
+            # On a sharded state's mesh: the packed report whole on every device, so that
+            # every process can read its copy (O(metrics) bytes cross devices), and the
+            # reset statistics split as they came in, so the next steps stay shard-local.
+            def run(state):
+                packed, finished, logged = batched(state)
+                if mesh is None:
+                    return packed, finished, logged
+                return replicated(packed, mesh), placed(finished, layout.finished), logged
+
+            return jax.jit(run)
+
+        self._flush_fns = functools.cache(flush_fn)
         self._emit = InGraphEmit(compute, metrics.reset_period, self._on_emit)
         self._timers = Timers()
         self._lock = threading.Lock()
@@ -322,7 +362,9 @@ class Logger(AbstractContextManager):
             )
         self._check_leading(state)
         self._check_step(step)
-        (floats, counts), episodes, logged = self._flush_fn(state)
+        mesh = mesh_of(state)
+        layout = None if mesh is None else _Layout(jax.tree.map(lambda x: x.sharding, state))
+        (floats, counts), finished, logged = self._flush_fns(mesh, layout)(state)
         floats.copy_to_host_async()
         counts.copy_to_host_async()
         self.report_nbytes = floats.nbytes + counts.nbytes
@@ -337,7 +379,7 @@ class Logger(AbstractContextManager):
         with self._lock:
             self._unchecked.append(_Check(step, runs, counts))
         self._surface(earlier)
-        return state._replace(episodes=episodes, logged=logged)
+        return state._replace(finished=finished, logged=logged)
 
     def timer(self, name: str) -> AbstractContextManager[None]:
         """`with logger.timer("rollout"): ...` adds the block's wall time to the tag
@@ -533,7 +575,7 @@ class Logger(AbstractContextManager):
         if not isinstance(state, MetricsState):
             raise TypeError(f"Logger.flush: expected a MetricsState, got {type(state).__name__}.")
         ref = next(
-            (x for x in (state.counters, state.logged, state.episodes) if x is not None), None
+            (x for x in (state.counters, state.logged, state.finished) if x is not None), None
         )
         if ref is None:
             return

@@ -11,6 +11,7 @@ import numpy as np
 
 from . import _count, _episode, _stream, _tags
 from ._count import Count
+from ._layout import env_layout, like
 from ._spec import (
     EPISODE_REDUCTIONS,
     Logged,
@@ -43,22 +44,6 @@ def _is_numeric(dtype) -> bool:
     return jnp.issubdtype(dtype, jnp.bool_) or (
         jnp.issubdtype(dtype, jnp.number) and not jnp.issubdtype(dtype, jnp.complexfloating)
     )
-
-
-def _like(x: jax.Array, ref: jax.Array) -> jax.Array:
-    """`x` laid out like the state's `ref` over an explicit mesh (a no-op otherwise).
-
-    Under explicit sharding JAX refuses to mix differently sharded operands; the state's
-    layout wins, so a scan carry keeps its type: a replicated state gathers the inputs, a
-    state sharded over envs keeps them sharded.
-    """
-    want = getattr(jax.typeof(ref).sharding, "spec", None)
-    have = getattr(jax.typeof(x).sharding, "spec", None)
-    if want is None or have is None or tuple(want) == tuple(have):
-        return x
-    if all(p is None for p in want) and all(p is None for p in have):
-        return x
-    return jax.sharding.reshard(x, want)
 
 
 def _flatten_terms(terms: Mapping[str, Any], policy: str) -> tuple[list[Term], list[MetricSpec]]:
@@ -204,6 +189,8 @@ class Metrics:
         if len(set(user_counters)) != len(user_counters):
             raise ValueError(f"duplicate counter names in {list(user_counters)}.")
         self.counter_names = builtin + user_counters
+        # "episodes" is counted per env shard (MetricsState.ended), the rest here.
+        self._stored_counters = tuple(c for c in self.counter_names if c != "episodes")
         self.prefixes = {"episode": episode_prefix, "logged": logged_prefix}
         self._counter_prefix = counter_prefix
         self.dtype = dt
@@ -251,18 +238,103 @@ class Metrics:
 
     # ------------------------------------------------------------------ pure functions
 
-    def init(self, num_envs: int) -> MetricsState:
-        """A fresh state for `num_envs` envs (0 gives the identity element of `merge`)."""
+    def init(self, num_envs: int, sharding: jax.sharding.Sharding | None = None) -> MetricsState:
+        """A fresh state for `num_envs` envs (0 gives the identity element of `merge`).
+
+        Args:
+          num_envs: the size of the env batch.
+          sharding: how the env batch is split over devices, e.g. `NamedSharding(mesh,
+            P("env"))` or the `.sharding` of any `[num_envs, ...]` array of the batch
+            (its first axis is the env axis). The state then keeps one set of
+            finished-episode statistics per env shard, laid out on the same devices, and
+            `update` runs without cross-device communication. None: one shard, the
+            state on the default device (right for a single device).
+
+        Raises:
+          ValueError: if `num_envs` does not split evenly into the shards.
+          TypeError: for a sharding other than a `NamedSharding` or a single device.
+        """
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)):
             raise TypeError(f"num_envs must be an int, got {num_envs!r}.")
         if num_envs < 0:
             raise ValueError(f"num_envs must be >= 0, got {num_envs}.")
+        num_envs = int(num_envs)
+        shards = env_layout(sharding, num_envs)
+        if num_envs == 0 and sharding is None:
+            shards = 0  # no shard at all: concatenating it in `merge` changes nothing
+        if not isinstance(sharding, jax.sharding.NamedSharding):
+            state = self._fresh(num_envs, shards)
+            return state if sharding is None else jax.device_put(state, sharding)
+        place = self.state_sharding(sharding)
+        # out_shardings places it under Auto axes; device_put types it under Explicit ones.
+        return jax.jit(
+            lambda: jax.device_put(self._fresh(num_envs, shards), place), out_shardings=place
+        )()
+
+    def state_sharding(self, sharding: jax.sharding.NamedSharding) -> MetricsState:
+        """The layout `init(num_envs, sharding)` gives: a MetricsState-shaped tree of
+        `NamedSharding`s (running episodes split like the envs, finished-episode
+        statistics split by shard, logged values and counters replicated).
+
+        Use it where a state crosses a `jit` boundary under Auto mesh axes, so that XLA
+        keeps it split (`jax.jit(..., out_shardings=...)`, or
+        `jax.lax.with_sharding_constraint(state, metrics.state_sharding(sharding))` on a
+        state carried through your own loop); `jaxmetrics.brax.wrap(sharding=...)` does
+        this on every step.
+
+        Examples:
+          >>> import jax, jaxmetrics as jm
+          >>> from jax.sharding import NamedSharding, PartitionSpec as P
+          >>> mesh = jax.make_mesh((1,), ("env",), devices=jax.devices()[:1])
+          >>> m = jm.Metrics(terms={"r": jm.Term(lambda r: r)})
+          >>> m.state_sharding(NamedSharding(mesh, P("env"))).running.steps.spec
+          PartitionSpec(None, 'env')
+        """
+        if not isinstance(sharding, jax.sharding.NamedSharding):
+            raise TypeError(
+                "state_sharding(sharding) takes the env batch's NamedSharding, got "
+                f"{type(sharding).__name__}."
+            )
+        mesh = sharding.mesh
+        env_axes = tuple(sharding.spec)[0] if tuple(sharding.spec) else None
+        return self._fresh_layout(
+            jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(None, env_axes)),
+            jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(env_axes)),
+            jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()),
+        )
+
+    def _fresh(self, num_envs: int, shards: int) -> MetricsState:
         has_ep = self._ep_plan is not None
+        n_counters = len(self._stored_counters)
+
+        def per_shard(x: jax.Array) -> jax.Array:
+            return jnp.broadcast_to(x, (shards, *x.shape))
+
         return MetricsState(
-            episode=_episode.init(self._episode_plan, int(num_envs)) if has_ep else None,
-            episodes=_stream.init(self._ep_plan) if has_ep else None,
+            running=_episode.init(self._episode_plan, num_envs) if has_ep else None,
+            finished=jax.tree.map(per_shard, _stream.init(self._ep_plan, shards > 1))
+            if has_ep
+            else None,
+            ended=_count.zeros((shards,)) if has_ep else None,
             logged=_stream.init(self._lg_plan) if self._lg_plan else None,
-            counters=_count.zeros((len(self.counter_names),)) if self.counter_names else None,
+            counters=_count.zeros((n_counters,)) if n_counters else None,
+        )
+
+    def _fresh_layout(self, running: Any, per_shard: Any, replicated: Any) -> MetricsState:
+        """A MetricsState-shaped tree of one leaf value per field group."""
+        plan = self._ep_plan
+        has_ep = plan is not None
+
+        def fill(tree: Any, v: Any) -> Any:
+            return jax.tree.map(lambda _: v, tree)
+
+        shapes = jax.eval_shape(lambda: self._fresh(0, 2))
+        return MetricsState(
+            running=fill(shapes.running, running) if has_ep else None,
+            finished=fill(shapes.finished, per_shard) if has_ep else None,
+            ended=fill(shapes.ended, per_shard) if has_ep else None,
+            logged=fill(shapes.logged, replicated) if self._lg_plan else None,
+            counters=fill(shapes.counters, replicated) if shapes.counters is not None else None,
         )
 
     def empty(self) -> MetricsState:
@@ -275,10 +347,10 @@ class Metrics:
                 f"{fn}: expected a MetricsState from this spec's init(), got "
                 f"{type(state).__name__}."
             )
-        ok = (state.episode is None) == (self._ep_plan is None)
+        ok = (state.running is None) == (self._ep_plan is None)
         ok &= (state.logged is None) == (self._lg_plan is None)
-        if ok and state.episode is not None:
-            ok = state.episode.steps.shape[-2] == self._episode_plan.rows
+        if ok and state.running is not None:
+            ok = state.running.steps.shape[-2] == self._episode_plan.rows
         if ok and state.logged is not None and self._lg_plan is not None:
             ok = state.logged.mean.shape[-1] == len(self._lg_plan.rows)
         if not ok:
@@ -357,36 +429,56 @@ class Metrics:
           The new state.
         """
         state = self._check_state(state, "update")
-        if state.episode is None:
+        if state.running is None:
             return state
-        num_envs = state.episode.steps.shape[-1]
+        num_envs = state.running.steps.shape[-1]
         done = jnp.asarray(done)
         if done.shape != (num_envs,) or not _is_numeric(done.dtype):
             raise ValueError(
                 f"done must be a bool array of shape (num_envs,)=({num_envs},), got "
                 f"{done.dtype}{list(done.shape)}."
             )
+        shards = state.ended.hi.shape[0]  # type: ignore[union-attr]
+        if shards == 0 or num_envs % shards:
+            raise ValueError(
+                f"update: this state splits {num_envs} envs into {shards} shards, which is not "
+                "an even split (a state merged from states of different sizes, or of no "
+                "envs). Update a state made by init(num_envs, sharding=...)."
+            )
         done = done.astype(jnp.bool_) if done.dtype != jnp.bool_ else done
-        x = _like(self._evaluate(step_input, num_envs), state.episode.steps)
-        done = _like(done, state.episode.steps[0])
+        x = like(self._evaluate(step_input, num_envs), state.running.steps, "the term values")
+        done = like(done, state.running.steps[0], "done")
         prop = jnp.asarray(self._ep_propagate)[:, None]
         finite = jnp.isfinite(x)
-        episode, values, any_step = _episode.step(
-            self._episode_plan, state.episode, x, finite | prop, done
+        running, values, any_step = _episode.step(
+            self._episode_plan, state.running, x, finite | prop, done
         )
         ended = done[None, :] & any_step
         ok = ended & (jnp.isfinite(values) | prop)
-        bad = jnp.sum(~finite, axis=1, dtype=jnp.int32) + jnp.sum(
-            ended & ~ok, axis=1, dtype=jnp.int32
+        bad = (~finite).astype(jnp.int32) + (ended & ~ok).astype(jnp.int32)
+
+        def by_shard(a: jax.Array) -> jax.Array:
+            # [M, E] -> [S, M, E/S]: shard s gets the s-th block of envs. With the env axis
+            # split over devices in S blocks this is a local view, and everything below
+            # reduces within a shard only.
+            return jnp.moveaxis(a.reshape(a.shape[0], shards, num_envs // shards), 1, 0)
+
+        plan = self._ep_plan
+        assert plan is not None
+        finished = jax.vmap(lambda st, v, m: _stream.add(plan, st, v, m))(
+            state.finished, by_shard(values), by_shard(ok)
         )
-        assert self._ep_plan is not None
-        episodes = _stream.add(self._ep_plan, state.episodes, values, ok)
-        episodes = _stream.add_nonfinite(episodes, bad)
+        finished = jax.vmap(_stream.add_nonfinite)(finished, jnp.sum(by_shard(bad), axis=2))
+        per_shard_done = jnp.sum(done.reshape(shards, num_envs // shards), axis=1, dtype=jnp.int32)
         counters = state.counters
-        inc = jnp.zeros((len(self.counter_names),), jnp.int32)
-        inc = inc.at[0].set(num_envs).at[1].set(jnp.sum(done, dtype=jnp.int32))
-        counters = _count.add(counters, inc)
-        return state._replace(episode=episode, episodes=episodes, counters=counters)
+        assert counters is not None
+        inc = jnp.zeros((len(self._stored_counters),), jnp.int32).at[0].set(num_envs)
+        return state._replace(
+            running=running,
+            finished=finished,
+            ended=_count.add(state.ended, per_shard_done),  # type: ignore[arg-type]
+            counters=_count.add(counters, inc),
+        )
 
     def log(self, state: MetricsState, values: Mapping[str, Any]) -> MetricsState:
         """Adds logged values: each scalar, or each element of an array, weighs 1.
@@ -452,41 +544,75 @@ class Metrics:
             raise TypeError(
                 f"increment: `by` must be a scalar int, got {by.dtype}{list(by.shape)}."
             )
-        inc = jnp.zeros((len(self.counter_names),), jnp.uint32)
-        inc = inc.at[self.counter_names.index(name)].set(by.astype(jnp.uint32))
+        if name == "episodes":
+            raise ValueError("increment: 'episodes' is counted by update from done.")
+        inc = jnp.zeros((len(self._stored_counters),), jnp.uint32)
+        inc = inc.at[self._stored_counters.index(name)].set(by.astype(jnp.uint32))
         return state._replace(counters=_count.add(state.counters, inc))
 
     def reset_period(self, state: MetricsState) -> MetricsState:
         """Starts a new flush period: period statistics clear; windows, EMA, counters and
         running episodes carry on."""
         state = self._check_state(state, "reset_period")
+        plan = self._ep_plan
         return state._replace(
-            episodes=_stream.reset_period(self._ep_plan, state.episodes) if self._ep_plan else None,
+            finished=jax.vmap(lambda st: _stream.reset_period(plan, st))(state.finished)
+            if plan
+            else None,
             logged=_stream.reset_period(self._lg_plan, state.logged) if self._lg_plan else None,
         )
 
     def merge(self, a: MetricsState, b: MetricsState) -> MetricsState:
-        """Combines the states of disjoint workers (devices, hosts, seeds).
+        """Combines the states of disjoint workers (devices, hosts, seeds) that ran side by
+        side, as one run over both env batches (`b`'s envs after `a`'s).
 
         Mean/std are count-weighted (Chan); sum, count, min, max, histograms and counters
-        are exact; windows keep the newest `n` with `b`'s values after `a`'s; EMA is the
-        average of the workers' EMAs (each seeded worker weighs 1). Running episodes are
-        concatenated along the env axis. Associative, with `empty()` as identity.
+        are exact; windows keep the newest `n` by arrival step (`b`'s values after `a`'s
+        of the same step); the EMA folds both workers' values in that order, exact to
+        2^-32 of the values' range for states made by a sharded `init` and the average
+        of the workers' EMAs otherwise (see the README). Running episodes are
+        concatenated along the env axis; env shards are concatenated when both states
+        have the same envs per shard, else each state's shards are merged into one first.
+        Associative, with `empty()` as identity.
         """
         a = self._check_state(a, "merge")
         b = self._check_state(b, "merge")
+        finished, ended = None, None
+        if self._ep_plan is not None:
+            finished, ended = self._merge_shards(a, b)
         return MetricsState(
-            episode=None
-            if a.episode is None
-            else jax.tree.map(lambda x, y: jnp.concatenate([x, y], axis=-1), a.episode, b.episode),
-            episodes=None
-            if self._ep_plan is None
-            else _stream.merge(self._ep_plan, a.episodes, b.episodes),
+            running=None
+            if a.running is None
+            else jax.tree.map(lambda x, y: jnp.concatenate([x, y], axis=-1), a.running, b.running),
+            finished=finished,
+            ended=ended,
             logged=None
             if self._lg_plan is None
             else _stream.merge(self._lg_plan, a.logged, b.logged),
             counters=None if a.counters is None else _count.merge(a.counters, b.counters),
         )
+
+    def _merge_shards(self, a: MetricsState, b: MetricsState) -> tuple[Any, Count]:
+        plan = self._ep_plan
+        assert plan is not None and a.ended is not None and b.ended is not None
+        sa, sb = a.ended.hi.shape[0], b.ended.hi.shape[0]
+        if sa == 0 or sb == 0:
+            return (b.finished, b.ended) if sa == 0 else (a.finished, a.ended)
+        per_a = a.running.steps.shape[-1] // sa  # type: ignore[union-attr]
+        per_b = b.running.steps.shape[-1] // sb  # type: ignore[union-attr]
+        fa, fb, ea, eb = a.finished, b.finished, a.ended, b.ended
+        if per_a != per_b:
+            # Shards of different sizes cannot stay blocks of one env axis: one shard.
+            one = _stream.merge(plan, _stream.combine(plan, fa), _stream.combine(plan, fb))
+            total = _count.merge(_count.total(ea), _count.total(eb))
+            return jax.tree.map(lambda x: x[None], (one, total))
+        width = max(
+            (r.buf.shape[-1] for f in (fa, fb) for r in f.ema_rings),  # type: ignore[union-attr]
+            default=0,
+        )
+        fa, fb = (_stream.pad_ema_history(f, width) for f in (fa, fb))  # type: ignore[arg-type]
+        cat = lambda x, y: jnp.concatenate([x, y], axis=0)  # noqa: E731
+        return jax.tree.map(cat, fa, fb), jax.tree.map(cat, ea, eb)
 
     def compute(
         self, state: MetricsState, include_running: bool = False
@@ -503,8 +629,11 @@ class Metrics:
         """
         state = self._check_state(state, "compute")
         out: dict[str, jax.Array | Count] = {}
+        finished = None
+        if self._ep_plan is not None:
+            finished = _stream.combine(self._ep_plan, state.finished)  # type: ignore[arg-type]
         for group, plan, st in (
-            ("episode", self._ep_plan, state.episodes),
+            ("episode", self._ep_plan, finished),
             ("logged", self._lg_plan, state.logged),
         ):
             if plan is None:
@@ -513,19 +642,22 @@ class Metrics:
             for i, spec in enumerate(plan.rows):
                 for stat in _stats_of(spec):
                     out[_tags.tag(self.prefixes[group], spec.name, stat)] = rows[i][stat]
-        if include_running and state.episode is not None:
-            run = _episode.running(self._episode_plan, state.episode)
+        if include_running and state.running is not None:
+            run = _episode.running(self._episode_plan, state.running)
             has = ~jnp.isnan(run)
             n = jnp.sum(has, axis=1)
             mean = jnp.sum(jnp.where(has, run, 0), axis=1) / jnp.maximum(n, 1).astype(self.dtype)
             mean = jnp.where(n > 0, mean, jnp.nan)
             for i, spec in enumerate(self._ep_rows):
                 out[_tags.tag(self.prefixes["episode"], spec.name, "running")] = mean[i]
-        if state.counters is not None:
-            for j, c in enumerate(self.counter_names):
-                out[_tags.tag(self._counter_prefix, c, "mean")] = Count(
-                    state.counters.hi[j], state.counters.lo[j]
-                )
+        for c in self.counter_names:
+            if c == "episodes":
+                value = _count.total(state.ended)  # type: ignore[arg-type]
+            else:
+                assert state.counters is not None
+                j = self._stored_counters.index(c)
+                value = Count(state.counters.hi[j], state.counters.lo[j])
+            out[_tags.tag(self._counter_prefix, c, "mean")] = value
         return out
 
     # ------------------------------------------------------------------ host side

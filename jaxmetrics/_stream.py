@@ -5,31 +5,41 @@ masked-in values arrive in ascending column order (for episodes: ascending env i
 Period statistics (count/mean/std/min/max/sum/histogram/nonfinite) reset with
 `reset_period`; EMA and windows persist.
 
+Each `add` is one arrival step: `steps` counts them, and every value kept in a ring
+buffer (windows, EMA history) carries the step it arrived on. That stamp is what lets
+`merge` interleave the streams of disjoint workers (the env shards of one sharded state,
+or separate states) in arrival order: by step, then worker order, then order within the
+batch, which for env shards is ascending global env index.
+
 All rows are stacked so that one fused XLA kernel serves every metric, whatever their
 number: the per-step cost grows with rows x envs elementwise, not with kernel launches.
 """
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import _count
 from ._count import Count
+from ._layout import gathered
 from ._numerics import kahan_add
 from ._spec import MetricSpec
 
 
-class WindowState(NamedTuple):
-    """Ring buffers of one window size, for the rows that have such a window.
+class Ring(NamedTuple):
+    """Ring buffers of the newest `size` arrivals of some rows, with their arrival steps.
 
     The value with arrival order j (0 oldest ... size-1 newest, right-aligned) is at
-    slot (pos + j) mod size, valid when j >= size - filled.
+    slot (pos + j) mod size, valid when j >= size - filled. `size` is read from `buf`.
     """
 
     buf: jax.Array  # [rows, size] float
+    stamp: jax.Array  # [rows, size] uint32: the stream's `steps` when the value arrived
     pos: jax.Array  # [rows] int32, next slot to write
     filled: jax.Array  # [rows] int32 in [0, size]
 
@@ -48,7 +58,10 @@ class StreamState(NamedTuple):
     nonfinite: Count  # [R] uint32 pair: non-finite values left out in this period
     ema: jax.Array  # [R_ema] float
     ema_w: jax.Array  # [R_ema] float: 0 unseeded, else number of merged seeded workers
-    windows: tuple[WindowState, ...]  # one per distinct window size
+    ema_n: jax.Array  # [R_ema] int32: values the EMA has seen (saturates at 2^31 - 1)
+    ema_rings: tuple[Ring, ...]  # one per EmaGroup: the newest values, for exact merges
+    steps: jax.Array  # [] uint32: arrival steps so far (wraps; only differences are used)
+    windows: tuple[Ring, ...]  # one per distinct window size
     hists: tuple[Count, ...]  # one per distinct bin count: [R_h, bins + 2] incl. under/overflow
 
 
@@ -56,6 +69,30 @@ class StreamState(NamedTuple):
 class WindowGroup:
     size: int
     rows: tuple[int, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class EmaGroup:
+    """EMA rows of one coefficient; `history` is how many newest values make it exact.
+
+    A value that has `h` newer ones weighs at most `(1-c)^h` in the EMA; with
+    `h = history` that is below 2^-32 (capped at `MAX_EMA_HISTORY` values), so merging
+    workers by folding their newest `history` values in arrival order, on top of any
+    estimate of the older EMA within the range of the values, is exact to 2^-32 of that
+    range: below float32's resolution.
+    """
+
+    coeff: float
+    rows: tuple[int, ...]  # indices into the stream's EMA rows (not its rows)
+
+    @property
+    def history(self) -> int:
+        if self.coeff >= 1.0:
+            return 1
+        return min(MAX_EMA_HISTORY, math.ceil(32 * math.log(2) / -math.log1p(-self.coeff)))
+
+
+MAX_EMA_HISTORY = 1 << 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,6 +110,7 @@ class StreamPlan:
     rows: tuple[MetricSpec, ...]
     ema_rows: tuple[int, ...]
     ema_coeffs: tuple[float, ...]
+    ema_groups: tuple[EmaGroup, ...]
     windows: tuple[WindowGroup, ...]
     hists: tuple[HistGroup, ...]
     dtype: jnp.dtype
@@ -87,6 +125,10 @@ class StreamPlan:
         rows = tuple(rows)
         ema_rows = tuple(i for i, r in enumerate(rows) if r.stats.ema is not None)
         coeffs = tuple(float(rows[i].stats.ema.coeff) for i in ema_rows)  # type: ignore[union-attr]
+        ema_groups = tuple(
+            EmaGroup(c, tuple(j for j, cj in enumerate(coeffs) if cj == c))
+            for c in sorted(set(coeffs))
+        )
         sizes = sorted({r.stats.window.size for r in rows if r.stats.window is not None})
         windows = tuple(
             WindowGroup(
@@ -111,12 +153,25 @@ class StreamPlan:
                     tuple(rows[i].stats.histogram.range[1] for i in idx),  # type: ignore[union-attr]
                 )
             )
-        return cls(rows, ema_rows, coeffs, windows, tuple(hists), jnp.dtype(dtype))
+        return cls(rows, ema_rows, coeffs, ema_groups, windows, tuple(hists), jnp.dtype(dtype))
 
 
-def init(plan: StreamPlan) -> StreamState:
+def _ring(rows: int, size: int, dt) -> Ring:
+    return Ring(
+        jnp.zeros((rows, size), dt),
+        jnp.zeros((rows, size), jnp.uint32),
+        jnp.zeros((rows,), jnp.int32),
+        jnp.zeros((rows,), jnp.int32),
+    )
+
+
+def init(plan: StreamPlan, ema_history: bool = False) -> StreamState:
+    """An empty stream. `ema_history` keeps each EMA row's newest values (its group's
+    `history`), which makes merging EMAs of disjoint workers exact; without it a merged
+    EMA is the average of the workers' EMAs."""
     r, dt = len(plan.rows), plan.dtype
     zeros = jnp.zeros((r,), dt)
+    e = len(plan.ema_rows)
     return StreamState(
         count=_count.zeros((r,)),
         mean=zeros,
@@ -127,16 +182,14 @@ def init(plan: StreamPlan) -> StreamState:
         min=jnp.full((r,), jnp.inf, dt),
         max=jnp.full((r,), -jnp.inf, dt),
         nonfinite=_count.zeros((r,)),
-        ema=jnp.zeros((len(plan.ema_rows),), dt),
-        ema_w=jnp.zeros((len(plan.ema_rows),), dt),
-        windows=tuple(
-            WindowState(
-                jnp.zeros((len(g.rows), g.size), dt),
-                jnp.zeros((len(g.rows),), jnp.int32),
-                jnp.zeros((len(g.rows),), jnp.int32),
-            )
-            for g in plan.windows
+        ema=jnp.zeros((e,), dt),
+        ema_w=jnp.zeros((e,), dt),
+        ema_n=jnp.zeros((e,), jnp.int32),
+        ema_rings=tuple(
+            _ring(len(g.rows), g.history if ema_history else 0, dt) for g in plan.ema_groups
         ),
+        steps=jnp.zeros((), jnp.uint32),
+        windows=tuple(_ring(len(g.rows), g.size, dt) for g in plan.windows),
         hists=tuple(_count.zeros((len(g.rows), g.bins + 2)) for g in plan.hists),
     )
 
@@ -144,18 +197,6 @@ def init(plan: StreamPlan) -> StreamState:
 def _weight_dtype(dt: jnp.dtype) -> jnp.dtype:
     # Counts and weights need float32's range even for a float16/bfloat16 state.
     return jnp.dtype(jnp.float64) if dt == jnp.float64 else jnp.dtype(jnp.float32)
-
-
-def _gathered(x: jax.Array) -> jax.Array:
-    """`x` unsharded, where it is sharded over explicit mesh axes (a no-op otherwise).
-
-    Order-dependent statistics (EMA, windows, histograms) scan the env axis in order;
-    under explicit sharding JAX asks for that axis to be whole first.
-    """
-    spec = getattr(jax.typeof(x).sharding, "spec", None)
-    if spec is None or all(p is None for p in spec):
-        return x
-    return jax.sharding.reshard(x, jax.sharding.PartitionSpec())
 
 
 def _take(rows: tuple[int, ...], x: jax.Array) -> jax.Array:
@@ -197,20 +238,36 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     vmax = jnp.maximum(s.max, bmax)
 
     if plan.ema_rows or plan.windows or plan.hists:
-        values, mask = _gathered(values), _gathered(mask)
+        values, mask = gathered(values), gathered(mask)
     # One arrival rank (a cumsum over envs, the costliest op here) shared by every row
     # that needs one: EMA and window rows.
     ranked = plan.ranked_rows
     rank = jnp.cumsum(_take(ranked, mask), axis=1, dtype=jnp.int32) - 1 if ranked else None
     at = {row: i for i, row in enumerate(ranked)}
-    ema, ema_w = s.ema, s.ema_w
+    ema, ema_w, ema_n = s.ema, s.ema_w, s.ema_n
+    ema_rings = s.ema_rings
     if plan.ema_rows:
         sub = tuple(at[r] for r in plan.ema_rows)
-        ema, ema_w = _ema_add(plan, s, values, mask, _take(sub, rank), _take(plan.ema_rows, k))
+        ek = _take(plan.ema_rows, k)
+        ema, ema_w = _ema_add(plan, s, values, mask, _take(sub, rank), ek)
+        ema_n = ema_n + jnp.minimum(ek, _INT32_MAX - ema_n)
+        ema_rings = tuple(
+            ring
+            if ring.buf.shape[1] == 0
+            else _ring_add(
+                ring,
+                s.steps,
+                _take(tuple(plan.ema_rows[j] for j in g.rows), values),
+                _take(tuple(plan.ema_rows[j] for j in g.rows), mask),
+                _take(tuple(sub[j] for j in g.rows), rank),
+                _take(g.rows, ek),
+            )
+            for g, ring in zip(plan.ema_groups, s.ema_rings)
+        )
     windows = tuple(
-        _window_add(
-            g,
+        _ring_add(
             w,
+            s.steps,
             _take(g.rows, values),
             _take(g.rows, mask),
             _take(tuple(at[r] for r in g.rows), rank),
@@ -233,9 +290,15 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
         max=vmax,
         ema=ema,
         ema_w=ema_w,
+        ema_n=ema_n,
+        ema_rings=ema_rings,
+        steps=s.steps + jnp.uint32(1),
         windows=windows,
         hists=hists,
     )
+
+
+_INT32_MAX = np.int32(np.iinfo(np.int32).max)
 
 
 def _ema_add(plan: StreamPlan, s: StreamState, values, mask, r, k):
@@ -257,16 +320,17 @@ def _ema_add(plan: StreamPlan, s: StreamState, values, mask, r, k):
     return ema, ema_w
 
 
-def _window_add(g: WindowGroup, w: WindowState, values, mask, r, k) -> WindowState:
+def _ring_add(w: Ring, step: jax.Array, values, mask, r, k) -> Ring:
     # Only the last `size` arrivals survive; they go to consecutive ring slots in order.
-    n = g.size
+    n = w.buf.shape[1]
     skip = jnp.maximum(k - n, 0)[:, None]
     keep = mask & (r >= skip)
     slot = jnp.where(keep, (w.pos[:, None] + r - skip) % n, n)  # n = out of bounds: dropped
     rows = jnp.broadcast_to(jnp.arange(values.shape[0], dtype=jnp.int32)[:, None], slot.shape)
     buf = w.buf.at[rows, slot].set(values, mode="drop")
+    stamp = w.stamp.at[rows, slot].set(jnp.broadcast_to(step, slot.shape), mode="drop")
     stored = jnp.minimum(k, n)
-    return WindowState(buf, (w.pos + stored) % n, jnp.minimum(w.filled + stored, n))
+    return Ring(buf, stamp, (w.pos + stored) % n, jnp.minimum(w.filled + stored, n))
 
 
 def slot_counts_scatter(slot: jax.Array, nslots: int) -> jax.Array:
@@ -304,21 +368,94 @@ def add_nonfinite(s: StreamState, n: jax.Array) -> StreamState:
 
 
 def reset_period(plan: StreamPlan, s: StreamState) -> StreamState:
-    """Clears the period statistics; EMA and windows carry on."""
+    """Clears the period statistics; EMA, windows and the arrival step carry on."""
     fresh = init(plan)
-    return fresh._replace(ema=s.ema, ema_w=s.ema_w, windows=s.windows)
+    return fresh._replace(
+        ema=s.ema,
+        ema_w=s.ema_w,
+        ema_n=s.ema_n,
+        ema_rings=s.ema_rings,
+        steps=s.steps,
+        windows=s.windows,
+    )
 
 
-def _ordered(g: WindowGroup, w: WindowState) -> tuple[jax.Array, jax.Array]:
-    """Window contents right-aligned in arrival order (oldest first) and their validity."""
-    j = jnp.arange(g.size, dtype=jnp.int32)[None, :]
-    slot = (w.pos[:, None] + j) % g.size
+_UINT32_MAX = np.uint32(np.iinfo(np.uint32).max)
+
+
+def _ordered(w: Ring, steps: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Ring contents right-aligned in arrival order (oldest first): values, their ages
+    in arrival steps (`steps - stamp`), and validity."""
+    n = w.buf.shape[1]
+    if n == 0:
+        return w.buf, w.stamp, jnp.zeros(w.buf.shape, jnp.bool_)
+    j = jnp.arange(n, dtype=jnp.int32)[None, :]
+    slot = (w.pos[:, None] + j) % n
     vals = jnp.take_along_axis(w.buf, slot, axis=1)
-    return vals, j >= (g.size - w.filled)[:, None]
+    age = steps - jnp.take_along_axis(w.stamp, slot, axis=1)
+    return vals, age, j >= (n - w.filled)[:, None]
+
+
+def _union(wa: Ring, sa: jax.Array, wb: Ring, sb: jax.Array):
+    """Both rings' values in arrival order, oldest first: by age, then `a` before `b`
+    (within a step the lower worker arrives first), invalid entries in front."""
+    parts = [_ordered(wa, sa), _ordered(wb, sb)]
+    vals, age, valid = (jnp.concatenate([p[i] for p in parts], axis=1) for i in range(3))
+    key = jnp.where(valid, _UINT32_MAX - age, jnp.zeros_like(age))
+    order = jnp.argsort(key, axis=1, stable=True)
+    take = lambda x: jnp.take_along_axis(x, order, axis=1)  # noqa: E731
+    return take(vals), take(age), take(valid)
+
+
+def _newest(vals, age, valid, size: int, steps: jax.Array) -> Ring:
+    """A ring holding the newest `size` of `_union`'s entries, stamped relative to `steps`."""
+    keep = slice(vals.shape[1] - size, vals.shape[1])
+    return Ring(
+        vals[:, keep],
+        steps - age[:, keep],
+        jnp.zeros(vals.shape[:1], jnp.int32),
+        jnp.sum(valid[:, keep], axis=1, dtype=jnp.int32),
+    )
+
+
+def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
+    """EMA of both workers' values in arrival order (see `EmaGroup`)."""
+    dt = plan.dtype
+    wsum = a.ema_w + b.ema_w
+    # Estimate of the EMA before the newest values; it weighs (1-c)^history at most.
+    tail = jnp.where(
+        wsum > 0, (a.ema_w * a.ema + b.ema_w * b.ema) / jnp.maximum(wsum, 1), jnp.zeros_like(a.ema)
+    )
+    n = a.ema_n + jnp.minimum(b.ema_n, _INT32_MAX - a.ema_n)
+    parts, rings = [], []
+    for g, ra, rb in zip(plan.ema_groups, a.ema_rings, b.ema_rings):
+        size = ra.buf.shape[1]
+        rows = jnp.asarray(g.rows, jnp.int32)
+        vals, age, valid = _union(ra, a.steps, rb, b.steps)
+        # Exact when the rings hold every value either worker has seen.
+        exact = (a.ema_n[rows] <= size) & (b.ema_n[rows] <= size)
+        total = jnp.sum(valid, axis=1, dtype=jnp.int32)
+        folded = jnp.where(exact, total, jnp.minimum(total, size))[:, None]
+        p = vals.shape[1] - 1 - jnp.arange(vals.shape[1], dtype=jnp.int32)[None, :]
+        c = jnp.asarray(g.coeff, dt)
+        decay = jnp.power(1 - c, p.astype(dt))
+        seed = exact[:, None] & (p == folded - 1)
+        w = jnp.where(seed, decay, c * decay)
+        new = jnp.sum(jnp.where(valid & (p < folded), w * vals, 0), axis=1)
+        keep = jnp.where(exact, 0, jnp.power(1 - c, folded[:, 0].astype(dt)) * tail[rows])
+        parts.append((g.rows, keep + new))
+        rings.append(_newest(vals, age, valid, size, a.steps))
+    ema = jnp.zeros_like(a.ema)
+    for rows, v in parts:
+        ema = ema.at[jnp.asarray(rows, jnp.int32)].set(v)
+    ema = jnp.where(a.ema_n == 0, b.ema, jnp.where(b.ema_n == 0, a.ema, ema))
+    return ema, wsum, n, tuple(rings)
 
 
 def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
-    """Combines streams of disjoint workers; `b`'s values count as the newer ones."""
+    """Combines streams of disjoint workers that ran side by side: values of `b` arrive
+    after `a`'s of the same step. Period statistics are exact (Chan for mean/std);
+    windows and EMA follow arrival order (see the module docstring and `EmaGroup`)."""
     dt = plan.dtype
     wt = _weight_dtype(dt)
     na, nb = _count.as_float(a.count, wt), _count.as_float(b.count, wt)
@@ -332,21 +469,11 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
     m2, m2_c = kahan_add(m2, m2_c, -b.m2_c)
     total, total_c = kahan_add(a.sum, a.sum_c, b.sum)
     total, total_c = kahan_add(total, total_c, -b.sum_c)
-    wsum = a.ema_w + b.ema_w
-    ema = jnp.where(
-        wsum > 0, (a.ema_w * a.ema + b.ema_w * b.ema) / jnp.maximum(wsum, 1), jnp.zeros_like(a.ema)
+    ema, ema_w, ema_n, ema_rings = _merge_ema(plan, a, b)
+    windows = tuple(
+        _newest(*_union(wa, a.steps, wb, b.steps), wa.buf.shape[1], a.steps)
+        for wa, wb in zip(a.windows, b.windows)
     )
-    windows = []
-    for g, wa, wb in zip(plan.windows, a.windows, b.windows):
-        va, _ = _ordered(g, wa)
-        vb, _ = _ordered(g, wb)
-        # Newest `size` of (a's values, then b's): b right-aligned, a's newest just before.
-        both = jnp.concatenate([va, vb], axis=1)
-        j = jnp.arange(g.size, dtype=jnp.int32)[None, :]
-        src = jnp.where(j >= g.size - wb.filled[:, None], g.size + j, j + wb.filled[:, None])
-        buf = jnp.take_along_axis(both, src, axis=1)
-        filled = jnp.minimum(wa.filled + wb.filled, g.size)
-        windows.append(WindowState(buf, jnp.zeros_like(wa.pos), filled))
     return StreamState(
         count=_count.merge(a.count, b.count),
         mean=mean,
@@ -358,10 +485,57 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
         max=jnp.maximum(a.max, b.max),
         nonfinite=_count.merge(a.nonfinite, b.nonfinite),
         ema=ema,
-        ema_w=wsum,
-        windows=tuple(windows),
+        ema_w=ema_w,
+        ema_n=ema_n,
+        ema_rings=ema_rings,
+        steps=a.steps,
+        windows=windows,
         hists=tuple(_count.merge(x, y) for x, y in zip(a.hists, b.hists)),
     )
+
+
+def combine(plan: StreamPlan, shards: StreamState) -> StreamState:
+    """One stream from per-shard streams stacked on a leading axis, merged in shard order.
+
+    Shard `i` holds the `i`-th contiguous block of envs, so merging in shard order gives
+    ascending global env index among values that arrive on the same step.
+    """
+    num = shards.steps.shape[0]
+    shards = jax.tree.map(gathered, shards)  # explicit meshes: shards meet here, once
+    first = jax.tree.map(lambda x: x[0], shards) if num else None
+    if num == 1:
+        return first
+    if num == 0:
+        history = any(r.buf.shape[-1] > 0 for r in shards.ema_rings)
+        return init(plan, ema_history=history)
+    rest = jax.tree.map(lambda x: x[1:], shards)
+    return jax.lax.scan(lambda acc, sh: (merge(plan, acc, sh), None), first, rest)[0]
+
+
+def pad_ema_history(s: StreamState, size: int) -> StreamState:
+    """`s` with EMA rings widened to `size` (empty older slots), so it concatenates with
+    a state whose rings are that wide."""
+
+    def widen(r: Ring) -> Ring:
+        extra = size - r.buf.shape[-1]
+        if extra <= 0:
+            return r
+        lead = r.buf.shape[:-1]
+        pad = lambda x: jnp.concatenate([jnp.zeros((*lead, extra), x.dtype), x], axis=-1)  # noqa: E731
+        # Right-aligned contents stay right-aligned once the ring is rotated to slot 0.
+        vals, stamp = _rotated(r)
+        return Ring(pad(vals), pad(stamp), jnp.zeros_like(r.pos), r.filled)
+
+    return s._replace(ema_rings=tuple(widen(r) for r in s.ema_rings))
+
+
+def _rotated(r: Ring) -> tuple[jax.Array, jax.Array]:
+    n = r.buf.shape[-1]
+    if n == 0:
+        return r.buf, r.stamp
+    j = jnp.arange(n, dtype=jnp.int32)
+    slot = (r.pos[..., None] + j) % n
+    return jnp.take_along_axis(r.buf, slot, axis=-1), jnp.take_along_axis(r.stamp, slot, axis=-1)
 
 
 def _percentiles(sorted_vals: jax.Array, filled: jax.Array, ps: tuple[float, ...], dt):
@@ -406,7 +580,7 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
     for j, i in enumerate(plan.ema_rows):
         out[i]["ema"] = jnp.where(s.ema_w[j] > 0, s.ema[j], jnp.nan)
     for g, w in zip(plan.windows, s.windows):
-        vals, valid = _ordered(g, w)
+        vals, _, valid = _ordered(w, s.steps)
         filled = w.filled
         cnt = jnp.maximum(filled, 1).astype(dt)
         wmean = jnp.sum(jnp.where(valid, vals, 0), axis=1) / cnt

@@ -1,11 +1,11 @@
 """Strict JAX for the whole suite: implicit rank/dtype promotion over the env axis is the
-bug class these settings catch. Two CPU devices make the sharding tests real."""
+bug class these settings catch. Eight CPU devices make the sharding tests real (meshes of 2, 4 and 8)."""
 
 import os
 
 import jax
 
-jax.config.update("jax_num_cpu_devices", 2)
+jax.config.update("jax_num_cpu_devices", 8)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 # Compiles of Brax/MJX rollouts dominate the suite; a persistent cache makes reruns cheap.

@@ -110,7 +110,7 @@ def test_merged_episode_states_concatenate_envs_and_keep_running():
     a = METRICS.update(METRICS.init(3), jnp.asarray([1.0, 2.0, 3.0]), jnp.asarray([1, 0, 0]))
     b = METRICS.update(METRICS.init(2), jnp.asarray([10.0, 20.0]), jnp.asarray([0, 1]))
     m = METRICS.merge(a, b)
-    assert m.episode.steps.shape == (1, 5)
+    assert m.running.steps.shape == (1, 5)
     m = METRICS.update(m, jnp.asarray([1.0, 1.0, 1.0, 1.0, 1.0]), jnp.ones(5, bool))
     h = METRICS.to_host(METRICS.compute(m))
     # episodes: 1 (a env0), 20 (b env1), then 1, 3, 4, 11, 1

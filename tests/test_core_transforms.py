@@ -150,52 +150,51 @@ def test_vmap_over_seeds_equals_each_seed_alone():
 
 
 def test_envs_sharded_over_devices_equal_single_device():
-    devices = np.asarray(jax.devices())
-    assert len(devices) == 2  # conftest asks for 2 CPU devices
+    devices = np.asarray(jax.devices()[:2])
     mesh = Mesh(devices, ("env",))
     m = make()
     xs, dones = data(jax.random.key(4), 10, num_envs=8)
     env_sharded = NamedSharding(mesh, PartitionSpec(None, "env"))
     xs_s, dones_s = jax.device_put(xs, env_sharded), jax.device_put(dones, env_sharded)
     sharded = jax.jit(lambda a, b: rollout(m, a, b))(xs_s, dones_s)
-    assert sharded.episode.steps.sharding.spec == PartitionSpec(None, "env") or (
-        len(sharded.episode.steps.sharding.device_set) == 2
+    assert sharded.running.steps.sharding.spec == PartitionSpec(None, "env") or (
+        len(sharded.running.steps.sharding.device_set) == 2
     )
     single = jax.jit(lambda a, b: rollout(m, a, b))(xs, dones)
     assert_reports_equal(m, sharded, single, rtol=1e-5)
 
 
 def test_explicit_sharding_mesh_equals_single_device():
-    # jax.make_mesh defaults to Explicit axes, where JAX rejects ambiguous gathers and
-    # reductions over a sharded axis; the state from init() stays unsharded here.
-    mesh = jax.make_mesh((2,), ("env",), axis_types=(jax.sharding.AxisType.Explicit,))
+    # jax.make_mesh defaults to Explicit axes, where layouts are known at trace time: a
+    # state made for the env sharding updates shard-locally and reports what one device
+    # does; a state made without it is refused with the fix, never resharded per step.
+    mesh = jax.make_mesh(
+        (2,), ("env",), axis_types=(jax.sharding.AxisType.Explicit,), devices=jax.devices()[:2]
+    )
     m = make()
     xs, dones = data(jax.random.key(5), 10, num_envs=8)
     single = jax.jit(lambda a, b: rollout(m, a, b))(xs, dones)
 
-    def sharded_rollout(xs, dones, shard_state):
+    def sharded_rollout(xs, dones, sharding):
         def body(state, inp):
             x, d = inp
             state = m.update(state, {"x": x}, d)
             return m.log(state, {"loss": jnp.mean(x)}), None
 
-        state = m.init(xs.shape[1])
-        if shard_state:
-            episode = jax.sharding.reshard(state.episode, PartitionSpec(None, "env"))
-            state = state._replace(episode=episode)
-        return jax.lax.scan(body, state, (xs, dones))[0]
+        return jax.lax.scan(body, m.init(xs.shape[1], sharding=sharding), (xs, dones))[0]
 
-    for shard_state in (False, True):
-        with jax.set_mesh(mesh):
-            spec = NamedSharding(mesh, PartitionSpec(None, "env"))
-            out = jax.jit(sharded_rollout, static_argnums=2)(
-                jax.device_put(xs, spec), jax.device_put(dones, spec), shard_state
-            )
-        if shard_state:
-            assert jax.typeof(out.episode.steps).sharding.spec == PartitionSpec(None, "env")
-        got, want = m.to_host(m.compute(out)), m.to_host(m.compute(single))
-        # this rollout does not increment "updates"; everything else must match
-        assert_host_reports_close(got, want, rtol=1e-5, skip=("Counters/updates",))
+    with jax.set_mesh(mesh):
+        spec = NamedSharding(mesh, PartitionSpec(None, "env"))
+        args = jax.device_put(xs, spec), jax.device_put(dones, spec)
+        out = jax.jit(sharded_rollout, static_argnums=2)(
+            *args, NamedSharding(mesh, PartitionSpec("env"))
+        )
+        assert jax.typeof(out.running.steps).sharding.spec == PartitionSpec(None, "env")
+        with pytest.raises(ValueError, match=r"init\(num_envs, sharding=<the env batch"):
+            jax.jit(sharded_rollout, static_argnums=2)(*args, None)
+    got, want = m.to_host(m.compute(out)), m.to_host(m.compute(single))
+    # this rollout does not increment "updates"; everything else must match
+    assert_host_reports_close(got, want, rtol=1e-5, skip=("Counters/updates",))
 
 
 def test_empty_spec_has_no_state_and_update_is_identity():

@@ -112,3 +112,23 @@ def _first_loop(comps: dict[str, list[str]], name: str, seen: set[str]) -> str |
                 for m in _CALLS.finditer(instr):
                     queue += [c.strip() for c in m.group(1).replace("%", "").split(",")]
     return None
+
+
+COLLECTIVES = ("all-reduce", "all-gather", "all-to-all", "collective-permute", "reduce-scatter")
+"""Opcode prefixes of the ops that move data between devices (sync and async forms)."""
+
+
+def top_level_loops(hlo_text: str) -> list[dict[str, int]]:
+    """Op counts of each `while` of the entry computation, in program order."""
+    comps, entry = _split_computations(hlo_text)
+    out = []
+    for instr in comps.get(entry, []) if entry else []:
+        m = _BODY.search(instr)
+        if _opcode(instr) == "while" and m:
+            out.append(dict(collections.Counter(_ops(comps, m.group(1), set())).most_common()))
+    return out
+
+
+def collectives(ops: dict[str, int]) -> dict[str, int]:
+    """The cross-device ops among `ops`."""
+    return {op: n for op, n in ops.items() if op.startswith(COLLECTIVES)}

@@ -1,0 +1,102 @@
+"""Where a MetricsState lives when the env batch is split over devices.
+
+A sharded state keeps its finished-episode statistics per env shard: shard `i` folds the
+`i`-th contiguous block of envs, on the devices that hold those envs, so a step needs no
+communication; shards meet only when a report is computed.
+"""
+
+import math
+from typing import Any
+
+import jax
+
+
+def gathered(x: jax.Array) -> jax.Array:
+    """`x` unsharded, where it is sharded over explicit mesh axes (a no-op otherwise).
+
+    Under explicit sharding JAX asks for an axis to be whole before it is scanned in
+    order or indexed; this is the one place such a gather happens (at compute time).
+    """
+    sharding = jax.typeof(x).sharding
+    spec = getattr(sharding, "spec", None)
+    if spec is None or all(p is None for p in spec):
+        return x
+    return jax.sharding.reshard(
+        x, jax.sharding.NamedSharding(sharding.mesh, jax.sharding.PartitionSpec())
+    )
+
+
+def mesh_of(tree: Any) -> jax.sharding.Mesh | None:
+    """Host side: the mesh of a concrete state's sharded leaves (None on one device)."""
+    for leaf in jax.tree.leaves(tree):
+        sharding = getattr(leaf, "sharding", None)
+        if isinstance(sharding, jax.sharding.NamedSharding) and sharding.mesh.size > 1:
+            return sharding.mesh
+    return None
+
+
+def placed(tree: Any, sharding: Any) -> Any:
+    """In-graph: `tree` laid out by `sharding` (one `NamedSharding`, or a tree of them
+    matching `tree`): a reshard on Explicit mesh axes, where a sharding constraint would
+    only assert, and a sharding constraint on Auto ones."""
+    if isinstance(sharding, jax.sharding.NamedSharding):
+        sharding = jax.tree.map(lambda _: sharding, tree)
+
+    def one(x: jax.Array, s: jax.sharding.NamedSharding) -> jax.Array:
+        if all(t == jax.sharding.AxisType.Explicit for t in s.mesh.axis_types):
+            return jax.sharding.reshard(x, s)
+        return jax.lax.with_sharding_constraint(x, s)
+
+    return jax.tree.map(one, tree, sharding)
+
+
+def replicated(tree: Any, mesh: jax.sharding.Mesh | None) -> Any:
+    """In-graph: `tree` whole on every device of `mesh` (every process can read it)."""
+    if mesh is None:
+        return tree
+    return placed(tree, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+
+
+def like(x: jax.Array, ref: jax.Array, what: str) -> jax.Array:
+    """`x`, checked to be laid out like the state's `ref` over an explicit mesh.
+
+    Under explicit sharding the layouts are known at trace time; an input split
+    differently from the state would need a cross-device copy on every step, so it is an
+    error rather than a silent reshard (under Auto axes XLA decides; see the README).
+    """
+    want = getattr(jax.typeof(ref).sharding, "spec", None)
+    have = getattr(jax.typeof(x).sharding, "spec", None)
+    if want is None or have is None:
+        return x
+    want = tuple(want) + (None,) * (x.ndim - len(want))
+    have = tuple(have) + (None,) * (x.ndim - len(have))
+    if want == have:
+        return x
+    raise ValueError(
+        f"update: {what} are laid out as {jax.sharding.PartitionSpec(*have)} but the "
+        f"MetricsState expects {jax.sharding.PartitionSpec(*want)} (env axis last). "
+        "Build the state with metrics.init(num_envs, sharding=<the env batch's "
+        "sharding>) so that each device folds its own envs, or reshard the inputs."
+    )
+
+
+def env_layout(sharding: Any, num_envs: int) -> int:
+    """The number of env shards for `Metrics.init(sharding=...)`, checked."""
+    if sharding is None or isinstance(sharding, jax.sharding.SingleDeviceSharding):
+        return 1
+    if not isinstance(sharding, jax.sharding.NamedSharding):
+        raise TypeError(
+            f"init(sharding=...) takes the env batch's jax.sharding.NamedSharding (e.g. "
+            f"NamedSharding(mesh, P('env')), or env_state.done.sharding), got "
+            f"{type(sharding).__name__}."
+        )
+    spec = tuple(sharding.spec)
+    env_axes = spec[0] if spec else None
+    names = () if env_axes is None else (env_axes,) if isinstance(env_axes, str) else env_axes
+    shards = math.prod(sharding.mesh.shape[n] for n in names)
+    if num_envs % shards:
+        raise ValueError(
+            f"init: {num_envs} envs do not split evenly over the {shards} shards of "
+            f"{sharding.spec} on mesh {dict(sharding.mesh.shape)}; use a multiple of {shards}."
+        )
+    return shards
