@@ -37,6 +37,11 @@ ARGS = [
     "--host-steps", str(ROLLOUT_STEPS),
     "--host-repeats", "1",
     "--e2e-variants", "empty,floor,callback_numpy",
+    "--sharded-per-device", "4",
+    "--sharded-steps", "10",
+    "--sharded-repeats", "1",
+    "--sharded-devices", "1,2",
+    "--sharded-processes", "2",
 ]  # fmt: skip
 SCENARIOS = {
     "isolated",
@@ -46,6 +51,9 @@ SCENARIOS = {
     "flush",
     "end_to_end",
     "alternatives",
+    "sharded",
+    "sharded_flush",
+    "distributed",
     "targets",
 }
 
@@ -96,7 +104,8 @@ def test_rows_cover_the_requested_sizes(result):
     state = [r[5] for r in sc["scaling_envs"]["rows"]]
     assert state[1] > state[0]
     wstate = [r[3] for r in sc["scaling_window"]["rows"]]
-    assert wstate[1] - wstate[0] == 2 * (16 - 4) * 4  # two windowed float32 rows
+    # two windowed rows; a slot holds a float32 value and its uint32 arrival step
+    assert wstate[1] - wstate[0] == 2 * (16 - 4) * (4 + 4)
     assert len({r[2] for r in sc["flush"]["rows"]}) == 1
     e2e = [r[0] for r in sc["end_to_end"]["rows"]]
     assert len(e2e) == 4 and e2e[0] == "bare rollout" and "empty spec" in e2e[1]
@@ -162,3 +171,22 @@ def test_unknown_names_are_refused(capsys, flag):
     with pytest.raises(SystemExit):
         bench.main([flag, "floor,nope"])
     assert f"unknown {flag[2:]} " in capsys.readouterr().err
+
+
+def test_sharded_rows_count_the_collectives_of_each_layout(result):
+    doc, _, _ = result
+    sc = doc["scenarios"]
+    rows = {(r[0], r[1]): r for r in sc["sharded"]["rows"]}
+    full = "jaxmetrics, 10 terms, every statistic"
+    assert {d for d, _ in rows} == {1, 2}
+    for (d, label), r in rows.items():
+        if "without sharding" in label:
+            assert d == 2 and r[4] > 0  # the state made for one device reduces per step
+        else:
+            assert r[4] == 0, (d, label)
+    assert rows[(2, full)][3] is not None
+    # what a flush copies does not grow with the devices (or the envs)
+    assert len({r[2] for r in sc["sharded_flush"]["rows"]}) == 1
+    dist = {r[0]: r for r in sc["distributed"]["rows"]}
+    assert dist["jaxmetrics, full 10-term spec"][3] == 0  # no collective per step
+    assert 0 < dist["jaxmetrics, full 10-term spec"][4] < 4096  # O(metrics) bytes

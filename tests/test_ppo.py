@@ -11,6 +11,8 @@ import pytest
 from brax import envs
 from tensorboard.backend.event_processing import event_accumulator
 
+import jaxmetrics.brax as jmb
+from jaxmetrics.bench import _hlo
 from jaxmetrics.examples import ppo
 
 # The default config at a tenth of its budget: 30 iterations of 64 envs x 32 steps.
@@ -222,7 +224,8 @@ def test_observation_statistics_match_numpy():
     ("kwargs", "match"),
     [
         ({"num_envs": 0}, r"num_envs=\.\.\.\) must be a positive int"),
-        ({"num_minibatches": 3}, "must divide the batch"),
+        ({"num_minibatches": 3}, "must divide each device's batch"),
+        ({"devices": 3}, "devices=3 must divide num_envs"),
         ({"gamma": 1.5}, r"gamma=\.\.\.\) must be in \[0, 1\]"),
         ({"clip_eps": 0.0}, r"clip_eps=\.\.\.\) must be a number > 0"),
         ({"hidden_sizes": [64]}, "hidden_sizes"),
@@ -244,3 +247,33 @@ def test_bad_run_arguments_fail_before_any_compile(tmp_path):
         ppo.train(CONFIG, str(tmp_path), seeds=(-1,))
     with pytest.raises(ValueError, match="iterations"):
         ppo.train(CONFIG, str(tmp_path), iterations=CONFIG.num_iterations + 1)
+
+
+def test_devices_split_the_envs_and_the_rollout_loop_stays_shard_local(tmp_path):
+    # Before the first update both runs roll out the same policy on the same envs: the
+    # first record's episode metrics agree; the 2-device rollout loop holds no collective
+    # (the metrics fold per shard), while its SGD loop all-reduces the gradients.
+    small = ppo.PPOConfig(num_envs=8, unroll_length=16, total_steps=8 * 16 * 2, episode_length=10)
+    two = ppo.PPOConfig(**{**small.__dict__, "devices": 2})
+    first = {}
+    for config in (small, two):
+        result = ppo.train(config, str(tmp_path / f"d{config.devices}"), progress=False)
+        first[config.devices] = read_scalars(result.run_dirs[0])
+    shared = {t for t in first[1] if t.startswith("Episode_Metrics/")}
+    assert "Episode_Metrics/episode_return/count" in shared
+    for tag in shared:
+        np.testing.assert_allclose(
+            first[2][tag][small.steps_per_iteration],
+            first[1][tag][small.steps_per_iteration],
+            rtol=1e-5,
+            err_msg=tag,
+        )
+    p = ppo.make_ppo(two)
+    state = jax.jit(p.init)(jax.random.key(0))
+    hlo = jax.jit(p.iteration).lower(state).compile().as_text()
+    loops = _hlo.top_level_loops(hlo)
+    rollout, sgd = loops[0], loops[-1]
+    assert _hlo.collectives(rollout) == {}, rollout
+    assert "all-reduce" in _hlo.collectives(sgd), sgd
+    ms = jmb.metrics_state(state.env_state)
+    assert ms.ended.hi.shape == (2,)

@@ -8,10 +8,10 @@ from typing import Any
 
 import jax
 
-from . import _flush_cost, _isolated, _rollout
+from . import _flush_cost, _isolated, _rollout, _sharded
 from ._report import Table, environment, write_json
 
-SCENARIOS = ("isolated", "scaling", "flush", "e2e")
+SCENARIOS = ("isolated", "scaling", "flush", "e2e", "sharded")
 
 
 @dataclasses.dataclass
@@ -37,6 +37,11 @@ class Config:
     scale_repeats: int = 5
     flush_envs: tuple[int, ...] = (256, 1024, 4096, 16384, 65536)
     flush_repeats: int = 50
+    sharded_per_device: int = 4096
+    sharded_steps: int = 500
+    sharded_repeats: int = 5
+    sharded_devices: tuple[int, ...] = (1, 2)
+    sharded_processes: int = 2
 
 
 HELP = {
@@ -57,6 +62,11 @@ HELP = {
     "scale_repeats": "timed repeats of the scaling tables",
     "flush_envs": "num_envs values of the flush table",
     "flush_repeats": "flushes timed per size",
+    "sharded_per_device": "envs per device of the weak-scaling rollouts",
+    "sharded_steps": "scan length of the weak-scaling rollouts",
+    "sharded_repeats": "timed repeats of the weak-scaling rollouts",
+    "sharded_devices": "device counts of the weak-scaling table (those present)",
+    "sharded_processes": "processes of the jax.distributed table (0: skip it)",
 }
 
 FULL = Config()
@@ -75,6 +85,9 @@ QUICK = dataclasses.replace(
     scale_steps=100,
     scale_repeats=3,
     flush_repeats=20,
+    sharded_per_device=32,
+    sharded_steps=100,
+    sharded_repeats=2,
 )
 
 
@@ -125,6 +138,18 @@ def run(
                 c.e2e_variants,
             )
         )
+    if "sharded" in c.scenarios:
+        done(
+            *_sharded.sharded(
+                c.env,
+                c.backend,
+                c.sharded_per_device,
+                c.sharded_steps,
+                c.sharded_repeats,
+                c.sharded_devices,
+                c.sharded_processes,
+            )
+        )
     done(targets(tables))
     return tables
 
@@ -172,6 +197,19 @@ def targets(tables: Sequence[Table]) -> Table:
                 shown,
                 None if r is None else r >= 100,
             )
+    sh = _find(tables, "sharded")
+    if sh is not None:
+        over = {(r[0], r[1]): r[3] for r in sh.rows}
+        one = over.get((1, _sharded.SPECS["full"]))
+        for (d, label), pct in over.items():
+            if d > 1 and label == _sharded.SPECS["full"] and one is not None:
+                t.add(
+                    f"overhead on {d} devices within 0.5 pp of 1 device's (full spec)",
+                    f"{pct:.2f}% vs {one:.2f}%",
+                    pct - one <= 0.5,
+                )
+        left = sum(r[4] for r in sh.rows if r[1] != _sharded.SPECS["unsharded"])
+        t.add("no collective in the step loop (sharded state)", f"{left} ops", left == 0)
     fl = _find(tables, "flush")
     if fl is not None:
         col = {c: k for k, c in enumerate(fl.columns)}

@@ -40,6 +40,7 @@ class Rollout:
         num_envs: int,
         episode_length: int = 1000,
         metrics: jm.Metrics | None = None,
+        sharding: jax.sharding.NamedSharding | None = None,
     ):
         from brax import envs
         from brax.envs.wrappers import training
@@ -53,6 +54,8 @@ class Rollout:
 
                 self.env = jmb.wrap(base, metrics, episode_length=episode_length)
             keys = jax.random.split(jax.random.PRNGKey(0), num_envs)
+            if sharding is not None:  # the env batch follows its keys' layout
+                keys = jax.device_put(keys, sharding)
             self.state0 = jax.block_until_ready(jax.jit(self.env.reset)(keys))
         self.num_envs = num_envs
         self.action_key = jax.random.PRNGKey(1)

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State, Wrapper
 from brax.envs.wrappers import training as brax_training
 
+from .._layout import placed
 from .._metrics import Metrics
 from .._state import MetricsState
 
@@ -141,6 +142,10 @@ class MetricsWrapper(Wrapper):
       metrics: the metrics spec; its terms receive a `Transition`.
       episode_length: the time limit, in sub-steps.
       action_repeat: inner env steps per env step; terms are evaluated on each.
+      sharding: the env batch's sharding when envs are split over devices (e.g.
+        `NamedSharding(mesh, P("env"))`); `reset` lays the MetricsState out to match
+        (`Metrics.init(num_envs, sharding=...)`) and constrains the reset keys to it, so
+        every step folds metrics shard-locally.
 
     Raises:
       ValueError: for a non-positive length/repeat, an env that already contains an
@@ -148,7 +153,14 @@ class MetricsWrapper(Wrapper):
         unbatched env.
     """
 
-    def __init__(self, env: Env, metrics: Metrics, episode_length: int, action_repeat: int = 1):
+    def __init__(
+        self,
+        env: Env,
+        metrics: Metrics,
+        episode_length: int,
+        action_repeat: int = 1,
+        sharding: jax.sharding.Sharding | None = None,
+    ):
         super().__init__(env)
         if not isinstance(metrics, Metrics):
             raise TypeError(
@@ -161,8 +173,15 @@ class MetricsWrapper(Wrapper):
         self.action_repeat = _positive_int(action_repeat, "action_repeat")
         dt = getattr(env, "dt", None)
         self.sub_dt = None if dt is None else float(dt)
+        self.sharding = sharding
+        # Under Auto mesh axes XLA chooses the layout of a jit's outputs; pinning the
+        # MetricsState after each step keeps it split like the envs across jit calls.
+        self._state_sharding = None if sharding is None else metrics.state_sharding(sharding)
 
     def reset(self, rng: jax.Array) -> State:
+        if self.sharding is not None:
+            # The whole env batch follows its keys' layout from here on.
+            rng = placed(rng, self.sharding)
         with _brax_promotion():
             state = self.env.reset(rng)
         done = jnp.asarray(state.done)
@@ -184,7 +203,7 @@ class MetricsWrapper(Wrapper):
             episode_done=zeros,
             episode_metrics=episode_metrics,
         )
-        info[STATE_KEY] = self.metrics.init(done.shape[0])
+        info[STATE_KEY] = self.metrics.init(done.shape[0], sharding=self.sharding)
         return _strong_types(state.replace(info=info))
 
     def step(self, state: State, action: jax.Array) -> State:
@@ -247,6 +266,8 @@ class MetricsWrapper(Wrapper):
             episode_done=done,
             episode_metrics=episode_metrics,
         )
+        if self._state_sharding is not None:
+            mstate = placed(mstate, self._state_sharding)
         new_info[STATE_KEY] = mstate
         return _strong_types(nstate.replace(reward=reward, done=done, info=new_info))
 
@@ -257,6 +278,7 @@ def wrap(
     episode_length: int = 1000,
     action_repeat: int = 1,
     randomization_fn: Callable[..., Any] | None = None,
+    sharding: jax.sharding.Sharding | None = None,
 ) -> Wrapper:
     """`brax.envs.training.wrap` with `MetricsWrapper` in place of `EpisodeWrapper`.
 
@@ -270,6 +292,9 @@ def wrap(
       episode_length: the time limit, in sub-steps (env steps x `action_repeat`).
       action_repeat: inner env steps per env step; terms are evaluated on each.
       randomization_fn: as in Brax: makes a vectorized system and its vmap in_axes.
+      sharding: the env batch's sharding when envs are split over devices, e.g.
+        `NamedSharding(mesh, P("env"))`: the reset keys, hence the env batch, and the
+        MetricsState are laid out by it, and metrics fold shard-locally.
 
     Returns:
       The wrapped env; `reset` takes one key per env (`[num_envs, 2]`).
@@ -298,7 +323,7 @@ def wrap(
     else:
         batched = brax_training.DomainRandomizationVmapWrapper(env, randomization_fn)
     return brax_training.AutoResetWrapper(
-        MetricsWrapper(batched, metrics, episode_length, action_repeat)
+        MetricsWrapper(batched, metrics, episode_length, action_repeat, sharding)
     )
 
 

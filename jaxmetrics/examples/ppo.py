@@ -32,6 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from brax import envs
+from jax.sharding import AxisType, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb
@@ -75,7 +77,8 @@ class PPOConfig:
       episode_length: the time limit, in env steps x `action_repeat`.
       action_repeat: physics sub-steps per env step.
       update_epochs: passes over each iteration's batch.
-      num_minibatches: minibatches per pass; must divide `num_envs * unroll_length`.
+      num_minibatches: minibatches per pass; must divide each device's batch
+        `num_envs / devices * unroll_length`.
       learning_rate: Adam's step size (annealed linearly to 0 when `anneal_lr`).
       anneal_lr: anneal the learning rate linearly to 0 over the run.
       gamma: discount.
@@ -87,6 +90,10 @@ class PPOConfig:
       reward_scaling: rewards are multiplied by this inside the losses (not in metrics).
       hidden_sizes: hidden layers of the policy and the value networks (tanh).
       normalize_observations: running mean/std normalization of observations.
+      devices: local devices to train on, data-parallel: each seed's envs are split
+        evenly over them (metrics fold shard-locally), parameters are replicated, and
+        each minibatch's gradient is the mean over the whole batch (XLA all-reduces it).
+        Must divide `num_envs`.
     """
 
     env_name: str = "inverted_pendulum"
@@ -109,9 +116,11 @@ class PPOConfig:
     reward_scaling: float = 1.0
     hidden_sizes: tuple[int, ...] = (64, 64)
     normalize_observations: bool = True
+    devices: int = 1
 
     def __post_init__(self):
         for name in (
+            "devices",
             "num_envs",
             "unroll_length",
             "total_steps",
@@ -123,11 +132,16 @@ class PPOConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"PPOConfig({name}=...) must be a positive int, got {v!r}.")
-        batch = self.num_envs * self.unroll_length
+        if self.num_envs % self.devices:
+            raise ValueError(
+                f"PPOConfig: devices={self.devices} must divide num_envs={self.num_envs} "
+                "(each device steps the same number of envs)."
+            )
+        batch = self.num_envs // self.devices * self.unroll_length
         if batch % self.num_minibatches:
             raise ValueError(
-                f"PPOConfig: num_minibatches={self.num_minibatches} must divide the batch "
-                f"num_envs * unroll_length = {batch}."
+                f"PPOConfig: num_minibatches={self.num_minibatches} must divide each "
+                f"device's batch num_envs / devices * unroll_length = {batch}."
             )
 
         def number(v: Any) -> bool:
@@ -386,6 +400,21 @@ class PPO(NamedTuple):
     iteration: Callable[[TrainState], TrainState]
 
 
+def _env_sharding(devices: int) -> NamedSharding | None:
+    """The env axis split over the first `devices` local devices (None for one)."""
+    if devices == 1:
+        return None
+    local = jax.local_devices()
+    if devices > len(local):
+        raise ValueError(
+            f"PPOConfig(devices={devices}): only {len(local)} local device(s) "
+            f"({local[0].platform}). On a CPU, XLA_FLAGS="
+            f"--xla_force_host_platform_device_count={devices} makes that many."
+        )
+    mesh = jax.make_mesh((devices,), ("env",), axis_types=(AxisType.Auto,), devices=local[:devices])
+    return NamedSharding(mesh, P("env"))
+
+
 def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
     """Builds the env, the metrics spec and the pure `init`/`iteration` functions.
 
@@ -396,7 +425,8 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
       A `PPO`. Nothing is compiled yet.
 
     Raises:
-      ValueError: for an unknown env name, or an env whose observation is not a flat array.
+      ValueError: for an unknown env name, an env whose observation is not a flat array,
+        or more `devices` than there are local devices.
     """
     if not isinstance(config, PPOConfig):
         raise TypeError(f"make_ppo(config=...) must be a PPOConfig, got {type(config).__name__}.")
@@ -421,7 +451,10 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
         action_size=action_size,
         episode_length=config.episode_length,
     )
-    env = jmb.wrap(raw_env, metrics, config.episode_length, config.action_repeat)
+    env_sharding = _env_sharding(config.devices)
+    env = jmb.wrap(
+        raw_env, metrics, config.episode_length, config.action_repeat, sharding=env_sharding
+    )
     network = ActorCritic(action_size, config.hidden_sizes)
     optimizer = optax.chain(
         optax.clip_by_global_norm(config.max_grad_norm), optax.scale_by_adam(eps=1e-5)
@@ -509,7 +542,6 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
             c.gamma,
             c.gae_lambda,
         )
-        batch_size = c.num_envs * c.unroll_length
         batch = {
             "obs": traj["obs"],
             "action": traj["action"],
@@ -517,8 +549,17 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
             "advantage": advantage,
             "target": target,
         }
-        batch = jax.tree.map(lambda x: x.reshape((batch_size,) + x.shape[2:]), batch)
+        # [time, env, ...] -> [devices, local batch, ...]: each device keeps its own envs'
+        # transitions, shuffles them locally, and contributes an equal slice of every
+        # minibatch, whose mean gradient XLA all-reduces over the devices.
+        local = c.num_envs // c.devices * c.unroll_length
+        batch = jax.tree.map(
+            lambda x: jnp.swapaxes(x, 0, 1).reshape((c.devices, local) + x.shape[2:]), batch
+        )
+        if env_sharding is not None:
+            batch = jax.lax.with_sharding_constraint(batch, env_sharding)
         first_update = ts.iteration * c.updates_per_iteration
+        per_device = local // c.num_minibatches
 
         def epoch(carry, k):
             def minibatch(carry, mb):
@@ -532,11 +573,14 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
                 aux["learning_rate"] = lr
                 return (optax.apply_updates(params, updates), opt_state, index + 1), aux
 
-            perm = jax.random.permutation(k, batch_size)
-            shuffled = jax.tree.map(
-                lambda x: x[perm].reshape((c.num_minibatches, -1) + x.shape[1:]), batch
-            )
-            return jax.lax.scan(minibatch, carry, shuffled)
+            perm = jax.random.permutation(k, local)
+
+            def split(x: jax.Array) -> jax.Array:
+                x = x[:, perm].reshape((c.devices, c.num_minibatches, per_device) + x.shape[2:])
+                x = jnp.swapaxes(x, 0, 1)
+                return x.reshape((c.num_minibatches, c.devices * per_device) + x.shape[3:])
+
+            return jax.lax.scan(minibatch, carry, jax.tree.map(split, batch))
 
         (params, opt_state, _), aux = jax.lax.scan(
             epoch, (params, ts.opt_state, first_update), jax.random.split(k_sgd, c.update_epochs)
@@ -839,6 +883,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--minibatches", type=int, default=d.num_minibatches, help="per pass")
     p.add_argument("--learning-rate", type=float, default=d.learning_rate, help="Adam, annealed")
     p.add_argument("--entropy-coef", type=float, default=d.entropy_coef, help="entropy bonus")
+    p.add_argument(
+        "--devices", type=int, default=d.devices, help="local devices, envs split over them"
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     return p
 
@@ -865,6 +912,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             num_minibatches=args.minibatches,
             learning_rate=args.learning_rate,
             entropy_coef=args.entropy_coef,
+            devices=args.devices,
         )
     except ValueError as e:
         _parser().error(str(e))
