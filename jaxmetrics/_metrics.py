@@ -465,10 +465,17 @@ class Metrics:
 
         plan = self._ep_plan
         assert plan is not None
-        finished = jax.vmap(lambda st, v, m: _stream.add(plan, st, v, m))(
-            state.finished, by_shard(values), by_shard(ok)
-        )
-        finished = jax.vmap(_stream.add_nonfinite)(finished, jnp.sum(by_shard(bad), axis=2))
+
+        def fold(st, v, m, n):
+            return _stream.add_nonfinite(_stream.add(plan, st, v, m), n)
+
+        args = (state.finished, by_shard(values), by_shard(ok), jnp.sum(by_shard(bad), axis=2))
+        if shards == 1:
+            # One shard: the plain fold (a vmap of size 1 still batches its scatters).
+            first = jax.tree.map(lambda a: a[0], args)
+            finished = jax.tree.map(lambda a: a[None], fold(*first))
+        else:
+            finished = jax.vmap(fold)(*args)
         per_shard_done = jnp.sum(done.reshape(shards, num_envs // shards), axis=1, dtype=jnp.int32)
         counters = state.counters
         assert counters is not None
