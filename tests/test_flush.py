@@ -1,6 +1,7 @@
 """The host flush: non-blocking, drained in order by close(), durable across SIGKILL,
 deterministic non-finite errors, counters per second, timers, vmapped runs."""
 
+import inspect
 import json
 import os
 import signal
@@ -152,7 +153,7 @@ def test_nonfinite_raise_surfaces_at_the_next_flush_without_losing_data(tmp_path
     path = tmp_path / "m.jsonl"
     logger = jm.Logger(metrics, [jm.JsonlWriter(path)])
     state = logger.flush(metrics.log(metrics.init(1), {"x": jnp.float32(np.nan)}), 0)
-    with pytest.raises(jm.NonFiniteError, match="step 0: .*'x': 1 non-finite"):
+    with pytest.raises(jm.NonFiniteError, match="step 0, run 0: logged value 'x': 1 non-finite"):
         logger.flush(metrics.log(state, {"x": jnp.float32(2.0)}), 1)
     logger.close()
     with open(path) as f:
@@ -166,9 +167,30 @@ def test_nonfinite_raise_in_the_last_flush_surfaces_at_close(tmp_path):
     logger = jm.Logger(metrics, [memory])
     state = logger.flush(metrics.log(metrics.init(1), {"x": jnp.float32(1.0)}), 0)
     logger.flush(metrics.log(state, {"x": jnp.float32(np.inf)}), 1)
-    with pytest.raises(jm.NonFiniteError, match="step 1: "):
+    with pytest.raises(jm.NonFiniteError, match="step 1, run 0: "):
         logger.close()
     assert [r.step for r in memory.records] == [0, 1]
+
+
+def test_nonfinite_skip_warns_at_the_callers_line_naming_metric_run_and_step():
+    metrics = _log_metrics()
+    logger = jm.Logger(metrics, lambda run: [jm.MemoryWriter()], runs=2)
+    log = jax.vmap(lambda s, v: metrics.log(s, {"x": v}))
+    state = jax.vmap(lambda _: metrics.init(1))(jnp.arange(2))
+    state = logger.flush(log(state, jnp.array([1.0, np.nan], jnp.float32)), 4)
+    want = (
+        r"^step 4, run 1: logged value 'x': 1 non-finite value\(s\) left out \(Train/x/nonfinite\)$"
+    )
+    with pytest.warns(RuntimeWarning, match=want) as caught:
+        line = inspect.currentframe().f_lineno + 1
+        state = logger.flush(state, 5)
+    assert len(caught) == 1  # run 0 was clean
+    assert (caught[0].filename, caught[0].lineno) == (__file__, line)
+    state = logger.flush(log(state, jnp.array([np.inf, 2.0], jnp.float32)), 6)
+    with pytest.warns(RuntimeWarning, match="step 6, run 0: ") as caught:
+        line = inspect.currentframe().f_lineno + 1
+        logger.close()
+    assert (caught[0].filename, caught[0].lineno) == (__file__, line)
 
 
 def test_writer_errors_surface_on_the_callers_thread():
@@ -209,6 +231,36 @@ def test_counters_per_second_are_growth_over_host_time_between_flushes():
             assert cur.scalars[f"Counters/{c}"] - prev.scalars[f"Counters/{c}"] == inc
             assert cur.scalars[f"Counters/{c}/per_sec"] == pytest.approx(inc / dt)
     assert [x.scalars["Counters/episodes"] for x in r] == [0, 1, 3]
+
+
+def test_records_are_stamped_when_the_device_has_computed_the_report():
+    # A host loop runs ahead of the device (flush returns once it has dispatched): rates
+    # over dispatch times would be far too high (the PPO demo's first steps/s read 20x
+    # its steady value). Records carry the time their report reached the host instead.
+    metrics = jm.Metrics(logged=["x"], counters=["updates"])
+    a = jax.random.normal(jax.random.key(0), (512, 512), jnp.float32) / 32.0
+
+    @jax.jit
+    def iteration(state):
+        y = jax.lax.fori_loop(0, 40, lambda i, y: jnp.tanh(y @ a), a)
+        return metrics.increment(metrics.log(state, {"x": jnp.sum(y)}), "updates")
+
+    state = jax.block_until_ready(iteration(metrics.init(1)))  # compiled
+    start = time.perf_counter()
+    jax.block_until_ready(iteration(state))
+    seconds = time.perf_counter() - start  # one iteration on the device
+    memory = jm.MemoryWriter()
+    with jm.Logger(metrics, [memory]) as logger:
+        logger.flush(state, 0)  # compiles the flush
+        logger.wait()
+        start = time.time()
+        for step in (1, 2, 3):
+            state = logger.flush(iteration(state), step)
+    records = memory.records[1:]
+    for k, r in enumerate(records, start=1):
+        assert r.wall_time - start >= 0.7 * k * seconds, (k, r.wall_time - start, seconds)
+    for r in records[1:]:
+        assert r.scalars["Counters/updates/per_sec"] <= 1.5 / seconds
 
 
 def test_timers_report_seconds_per_period_and_zero_once_idle():

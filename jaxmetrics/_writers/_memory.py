@@ -4,8 +4,8 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
-from .._metrics import TagInfo
-from ._record import Record
+from .._report import Record
+from .._tags import TagInfo
 
 
 class MemoryWriter:

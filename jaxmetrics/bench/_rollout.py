@@ -7,7 +7,6 @@ by `brax.envs.training.wrap` (VmapWrapper + EpisodeWrapper + AutoResetWrapper), 
 pseudo-random actions drawn in-graph; every variant runs the same rollout.
 """
 
-import contextlib
 from collections.abc import Callable
 from typing import Any
 
@@ -22,12 +21,10 @@ from ._timing import Variant, blocking, compile_jit, measure, tree_bytes
 
 
 def _brax_promotion():
-    # Brax and MJX rely on implicit rank/dtype promotion; keep strict settings (the test
-    # suite's) for our own code only.
-    stack = contextlib.ExitStack()
-    stack.enter_context(jax.numpy_rank_promotion("allow"))
-    stack.enter_context(jax.numpy_dtype_promotion("standard"))
-    return stack
+    # Imported here: the other scenarios of the bench run without Brax installed.
+    from jaxmetrics.brax import default_promotion
+
+    return default_promotion()
 
 
 class Rollout:
@@ -41,16 +38,16 @@ class Rollout:
         episode_length: int = 1000,
         metrics: jm.Metrics | None = None,
     ):
-        from brax import envs
-        from brax.envs.wrappers import training
+        from jaxmetrics import brax as jmb  # before Brax: MuJoCo without its warp lines
+
+        from brax import envs  # isort: skip
+        from brax.envs.wrappers import training  # isort: skip
 
         with _brax_promotion():
             base = envs.get_environment(env_name, backend=backend)
             if metrics is None:
                 self.env = training.wrap(base, episode_length=episode_length)
             else:
-                from jaxmetrics import brax as jmb
-
                 self.env = jmb.wrap(base, metrics, episode_length=episode_length)
             keys = jax.random.split(jax.random.PRNGKey(0), num_envs)
             self.state0 = jax.block_until_ready(jax.jit(self.env.reset)(keys))

@@ -16,13 +16,11 @@ Run `python -m jaxmetrics.examples.ppo --help`.
 """
 
 import argparse
-import contextlib
 import dataclasses
 import math
 import os
 import sys
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
@@ -31,10 +29,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from brax import envs
 
 import jaxmetrics as jm
-import jaxmetrics.brax as jmb
+import jaxmetrics.brax as jmb  # before Brax: imports MuJoCo without its warp lines
+
+# isort: split
+from brax import envs
 
 LEARNER_METRICS = (
     "policy_loss",
@@ -50,14 +50,6 @@ LEARNER_METRICS = (
 (`explained_variance`: one per iteration, over the whole batch)."""
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
-
-
-@contextlib.contextmanager
-def _third_party():
-    # Brax, MJX and optax rely on implicit promotion (e.g. optax's `decay ** count`):
-    # run them under JAX's defaults whatever the user's config; our own code stays strict.
-    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
-        yield
 
 
 @dataclasses.dataclass(frozen=True)
@@ -406,7 +398,9 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
         # Brax keeps its registry in a private dict; read it only to name the choices.
         known = sorted(getattr(envs, "_envs", {}))
         raise ValueError(f"unknown Brax env {config.env_name!r}; known: {known}.") from None
-    with _third_party():
+    # Brax, MJX and optax (e.g. its `decay ** count`) run under JAX's default promotion
+    # whatever the user's config; this file's own code stays strict.
+    with jmb.default_promotion():
         shape = jax.eval_shape(raw_env.reset, jax.random.key_data(jax.random.key(0)))
     if not isinstance(shape.obs, jax.ShapeDtypeStruct) or len(shape.obs.shape) != 1:
         raise ValueError(
@@ -440,7 +434,7 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
         # Brax envs are written for raw uint32 keys (`rng.shape[:-1]` is the batch).
         env_state = env.reset(jax.random.key_data(jax.random.split(k_env, c.num_envs)))
         params = network.init(k_net, jnp.zeros((1, obs_size), jnp.float32))
-        with _third_party():
+        with jmb.default_promotion():
             opt_state = optimizer.init(params)
         return TrainState(
             params=params,
@@ -525,7 +519,7 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
                 params, opt_state, index = carry
                 (_, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, mb)
                 lr = learning_rate(index)
-                with _third_party():
+                with jmb.default_promotion():
                     updates, opt_state = optimizer.update(grads, opt_state, params)
                 updates = jax.tree.map(lambda u: -lr * u, updates)
                 aux["grad_norm"] = optax.tree.norm(grads)
@@ -815,15 +809,23 @@ def _train_graph(ppo: PPO, logger: jm.Logger, keys: jax.Array, n: int) -> TrainS
     return jax.block_until_ready(_batched(run, runs)(*args))
 
 
+def _prog() -> str:
+    # Run as `python -m jaxmetrics.examples.ppo`, argv[0] is this file's path; run as the
+    # installed `jaxmetrics-ppo` script, it is that script.
+    name = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else ""
+    return "python -m jaxmetrics.examples.ppo" if name in ("", "ppo.py", "-c") else name
+
+
 def _parser() -> argparse.ArgumentParser:
     d = PPOConfig()
     p = argparse.ArgumentParser(
-        prog="python -m jaxmetrics.examples.ppo",
+        prog=_prog(),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description=(
             "Train PPO on a Brax environment (MJX backend) with every metric logged "
-            "through jaxmetrics to TensorBoard. The defaults train inverted_pendulum on a "
-            "laptop CPU in a few minutes."
+            "through jaxmetrics to TensorBoard. The defaults train inverted_pendulum to "
+            "the maximum return (1,000) in under a minute on a 2-core laptop CPU, "
+            "compilation included."
         ),
     )
     p.add_argument("--env", default=d.env_name, help="Brax env name")
@@ -871,14 +873,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     log_dir = args.log_dir.replace("<env>", args.env).replace(
         "<time>", time.strftime("%Y%m%d-%H%M%S")
     )
-    with warnings.catch_warnings():
-        # Brax 0.14 warns on every env it builds that Brax's own pipelines are not
-        # maintained (MJX is, and is what runs here) and that jaxopt is deprecated.
-        warnings.filterwarnings("ignore", "Brax System, piplines", UserWarning)
-        warnings.filterwarnings("ignore", "JAXopt is no longer maintained", DeprecationWarning)
-        result = train(
-            config, log_dir, seeds=args.seeds, mode=args.mode, progress=not args.no_progress
-        )
+    result = train(config, log_dir, seeds=args.seeds, mode=args.mode, progress=not args.no_progress)
     steps = config.num_iterations * config.steps_per_iteration
     print(
         f"\nTrained {config.env_name} ({config.backend}) for {steps:,} env steps per seed, "
