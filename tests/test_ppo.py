@@ -2,7 +2,7 @@
 here), the host loop and the fully-jitted mode write the same values, vmapped seeds each go
 to their own run, and its pieces (GAE, observation statistics) match numpy references."""
 
-import contextlib
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -11,6 +11,7 @@ import pytest
 from brax import envs
 from tensorboard.backend.event_processing import event_accumulator
 
+import jaxmetrics.brax as jmb
 from jaxmetrics.examples import ppo
 
 # The default config at a tenth of its budget: 30 iterations of 64 envs x 32 steps.
@@ -40,13 +41,6 @@ def tags_at(scalars: dict[str, dict[int, float]], step: int) -> set[str]:
     return {t for t, by_step in scalars.items() if step in by_step}
 
 
-@contextlib.contextmanager
-def brax_promotion():
-    # Brax/MJX rely on implicit promotion; the suite runs strict (conftest).
-    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
-        yield
-
-
 @pytest.fixture(scope="module")
 def host_run(tmp_path_factory):
     result = ppo.train(CONFIG, str(tmp_path_factory.mktemp("host")), progress=False)
@@ -70,7 +64,7 @@ def random_policy_return(num_envs: int = 64, steps: int = 200) -> float:
 
         return jax.lax.scan(step, state, jax.random.split(key, steps))[1]
 
-    with brax_promotion():
+    with jmb.default_promotion():  # the suite runs strict (conftest)
         rewards, dones = jax.jit(rollout)(jax.random.PRNGKey(123))  # Brax: raw uint32 keys
     rewards, dones = np.asarray(rewards, np.float64), np.asarray(dones) > 0
     returns, running = [], np.zeros(num_envs)
@@ -82,6 +76,7 @@ def random_policy_return(num_envs: int = 64, steps: int = 200) -> float:
     return float(np.mean(returns))
 
 
+@pytest.mark.slow
 def test_ppo_learns_clearly_above_a_random_policy(host_run):
     result, scalars = host_run
     baseline = random_policy_return()
@@ -96,6 +91,7 @@ def test_ppo_learns_clearly_above_a_random_policy(host_run):
     assert result.last[0]["Episode_Metrics/episode_return/window_mean"] == pytest.approx(last)
 
 
+@pytest.mark.slow
 def test_every_metric_is_flushed_each_iteration(host_run):
     result, scalars = host_run
     steps = [SPI * (i + 1) for i in range(CONFIG.num_iterations)]
@@ -135,6 +131,7 @@ def assert_same_reports(got, want, steps, what):
             )
 
 
+@pytest.mark.slow
 def test_in_graph_mode_writes_what_the_host_loop_writes(host_run, tmp_path):
     _, host = host_run
     graph = ppo.train(CONFIG, str(tmp_path), mode="graph", iterations=SHORT, progress=False)
@@ -144,6 +141,7 @@ def test_in_graph_mode_writes_what_the_host_loop_writes(host_run, tmp_path):
     assert_same_reports(got, host, steps, "graph vs host")
 
 
+@pytest.mark.slow
 def test_vmapped_seeds_each_write_their_own_run(host_run, tmp_path):
     _, host = host_run
     result = ppo.train(
@@ -244,3 +242,20 @@ def test_bad_run_arguments_fail_before_any_compile(tmp_path):
         ppo.train(CONFIG, str(tmp_path), seeds=(-1,))
     with pytest.raises(ValueError, match="iterations"):
         ppo.train(CONFIG, str(tmp_path), iterations=CONFIG.num_iterations + 1)
+
+
+@pytest.mark.parametrize(
+    "argv0, prog",
+    [
+        ("/venv/bin/jaxmetrics-ppo", "jaxmetrics-ppo"),  # the installed script
+        (ppo.__file__, "python -m jaxmetrics.examples.ppo"),  # python -m
+    ],
+)
+def test_help_names_the_program_it_was_started_as(argv0, prog, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", [argv0, "--help"])
+    with pytest.raises(SystemExit) as exit_:
+        ppo.main(["--help"])
+    assert exit_.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert out.startswith(f"usage: {prog} [-h]")
+    assert "to the maximum return (1,000) in under a minute" in out
