@@ -69,12 +69,14 @@ class ProgressFn:
 
     Non-finite values are left out of the record (a gap, never a fake 0). Writers are
     opened on the first call, with the tags of that call (the TensorBoard mean ± std
-    layout covers the metrics of that call); they are closed by `close()` (or leaving a
-    `with` block). Calls are serialized (Brax may call from a callback
-    thread).
+    layout covers the metrics of that call), so a run that fails before Brax's first
+    report leaves no event file; they are closed by `close()` (or leaving a `with`
+    block). Calls are serialized (Brax may call from a callback thread).
 
     Brax 0.14.2's `ppo.train` itself calls `jax.device_put_replicated`, which JAX 0.10
-    removed: on that pair of versions it fails before training, whatever `progress_fn`.
+    removed from its public namespace: on that pair of versions it fails before training,
+    whatever `progress_fn`, unless the name is restored first (the README's "Brax's own
+    trainer" shows the three lines).
 
     Args:
       writers: jaxmetrics writers, e.g. `[jaxmetrics.TensorBoardWriter(logdir)]`.
