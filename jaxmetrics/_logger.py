@@ -10,7 +10,6 @@ what goes wrong there, and the non-finite policy, surface on the caller's thread
 
 import atexit
 import functools
-import os
 import queue
 import sys
 import threading
@@ -61,14 +60,11 @@ class _PendingNonFinite(NamedTuple):
     counts: Any  # packed counts, [len(runs), 2, K] (the leading axis may be absent for one)
 
 
-_PACKAGE = os.path.dirname(os.path.abspath(__file__)) + os.sep
-
-
 def _warn_at_caller(message: str) -> None:
-    """A `RuntimeWarning` attributed to the first frame outside jaxmetrics: the user's
-    line that called `flush`, `wait` or `close` (or left the `with` block)."""
+    """A `RuntimeWarning` attributed to the first frame outside this module: the line that
+    called `flush`, `wait` or `close` (or left the `with` block)."""
     level, frame = 1, sys._getframe(0)
-    while frame is not None and frame.f_code.co_filename.startswith(_PACKAGE):
+    while frame is not None and frame.f_code.co_filename == __file__:
         level, frame = level + 1, frame.f_back
     warnings.warn(message, RuntimeWarning, stacklevel=level)
 

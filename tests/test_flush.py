@@ -246,9 +246,12 @@ def test_records_are_stamped_when_the_device_has_computed_the_report():
         return metrics.increment(metrics.log(state, {"x": jnp.sum(y)}), "updates")
 
     state = jax.block_until_ready(iteration(metrics.init(1)))  # compiled
-    start = time.perf_counter()
-    jax.block_until_ready(iteration(state))
-    seconds = time.perf_counter() - start  # one iteration on the device
+    timings = []
+    for _ in range(3):
+        start = time.perf_counter()
+        jax.block_until_ready(iteration(state))
+        timings.append(time.perf_counter() - start)
+    seconds = min(timings)  # one iteration on the device, least disturbed by other load
     memory = jm.MemoryWriter()
     with jm.Logger(metrics, [memory]) as logger:
         logger.flush(state, 0)  # compiles the flush
@@ -258,9 +261,9 @@ def test_records_are_stamped_when_the_device_has_computed_the_report():
             state = logger.flush(iteration(state), step)
     records = memory.records[1:]
     for k, r in enumerate(records, start=1):
-        assert r.wall_time - start >= 0.7 * k * seconds, (k, r.wall_time - start, seconds)
+        assert r.wall_time - start >= 0.5 * k * seconds, (k, r.wall_time - start, seconds)
     for r in records[1:]:
-        assert r.scalars["Counters/updates/per_sec"] <= 1.5 / seconds
+        assert r.scalars["Counters/updates/per_sec"] <= 2.0 / seconds
 
 
 def test_timers_report_seconds_per_period_and_zero_once_idle():
@@ -327,6 +330,32 @@ def test_flush_moves_o_metrics_bytes_whatever_num_envs():
     # mean, window mean/std/min/max + 8 window values as float32; nonfinite and the two
     # counters as uint32 hi/lo pairs.
     assert sizes == [(5 + 8) * 4 + 3 * 2 * 4] * 2
+
+
+def test_packer_layout_comes_from_shapes_before_anything_is_traced():
+    from jaxmetrics._transfer import Packer
+
+    metrics = jm.Metrics(logged=["x"], counters=["u"])
+    shapes = jax.eval_shape(lambda: metrics.compute(metrics.init(1)))
+    packer = Packer(shapes, [i.tag for i in metrics.tags], jnp.float32)
+    floats = np.arange(4, dtype=np.float32)
+    counts = np.array([[0, 0, 1], [5, 2, 7]], np.uint32)  # hi and lo words
+    assert packer.unpack(floats, counts) == {
+        "Train/x": 0.0,
+        "Train/x/std": 1.0,
+        "Train/x/min": 2.0,
+        "Train/x/max": 3.0,
+        "Train/x/count": 5,
+        "Train/x/nonfinite": 2,
+        "Counters/u": 2**32 + 7,
+    }
+    state = metrics.increment(metrics.log(metrics.init(1), {"x": jnp.float32(3.0)}), "u")
+    report = metrics.compute(state)
+    got = packer.unpack(*(np.asarray(a) for a in jax.jit(packer.pack)(report)))
+    want = metrics.to_host(report)
+    assert got == want and list(got) == [i.tag for i in metrics.tags]
+    with pytest.raises(ValueError, match="one Metrics spec"):
+        packer.pack({k: v for k, v in report.items() if k != "Counters/u"})
 
 
 def test_counters_past_2_to_the_32_reach_writers_exactly():

@@ -87,6 +87,11 @@ def test_modules_import_only_their_layer_or_below(path):
         assert "jax" not in others, f"{'/'.join(rel)} imports jax"
 
 
+def test_progress_fn_builds_records_without_the_jax_core():
+    ours, _ = imports(PACKAGE / "brax" / "_progress.py")
+    assert ours <= PURE, ours - PURE
+
+
 def test_old_module_names_are_gone():
     for gone in ("_flush.py", "_step.py", "_writers/_record.py"):
         assert not (PACKAGE / gone).exists(), gone
