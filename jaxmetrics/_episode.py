@@ -70,9 +70,7 @@ def init(plan: EpisodePlan, num_envs: int) -> EpisodeState:
         last=n["last"],
     )
     dtypes = EpisodeState(jnp.int32, *(plan.dtype,) * 7)
-    return EpisodeState(
-        *(jnp.full((r, num_envs), v, dt) for r, v, dt in zip(rows, _START, dtypes))
-    )
+    return EpisodeState(*(jnp.full((r, num_envs), v, dt) for r, v, dt in zip(rows, _START, dtypes)))
 
 
 def step(
