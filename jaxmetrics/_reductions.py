@@ -1,7 +1,7 @@
 """The registry of episode reductions: how a term's per-step values become one value per
-episode. Validation (here), the reductions `success_rate` accepts and their documentation
-derive from `REDUCTIONS`. (`_episode` lays its accumulators out in its own block order;
-`tests/test_core_errors.py` checks it covers the same names.)
+episode. Validation and its message (here) and the reductions `success_rate` accepts (with
+what each says about a flag) derive from `REDUCTIONS`. (`_episode` lays its accumulators
+out in its own block order; `tests/test_layout.py` checks it covers the same names.)
 """
 
 from typing import Any, NamedTuple
@@ -24,11 +24,11 @@ class Reduction(NamedTuple):
 
 REDUCTIONS = (
     Reduction("mean", "the per-step average", "fraction of steps"),
-    Reduction("sum", "the sum over the episode (return-style)", None),
+    Reduction("sum", "the return-style sum over the episode", None),
     Reduction("max", "the largest value", "at any step"),
     Reduction("min", "the smallest value", "at every step"),
     Reduction("last", "the value on the episode's last step", "at episode end"),
-    Reduction("std", "the population std (ddof 0) of the per-step values", None),
+    Reduction("std", "the population std of the per-step values, ddof 0", None),
 )
 
 NAMES = tuple(r.name for r in REDUCTIONS)
@@ -45,5 +45,8 @@ def check(reduce: Any, where: str) -> str:
       ValueError: naming `where` and the valid names.
     """
     if reduce not in NAMES:
-        raise ValueError(f"{where}: unknown episode reduction {reduce!r}; expected one of {NAMES}.")
+        choices = ", ".join(f"{r.name!r} ({r.meaning})" for r in REDUCTIONS)
+        raise ValueError(
+            f"{where}: unknown episode reduction {reduce!r}; expected one of {choices}."
+        )
     return reduce
