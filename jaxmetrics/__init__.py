@@ -4,10 +4,12 @@ Please don't use symbols from the private `_*` modules: everything public is re-
 """
 
 from ._count import Count as Count
-from ._flush import Logger as Logger
+from ._logger import Logger as Logger
+from ._logger import NonFiniteError as NonFiniteError
 from ._metrics import Metrics as Metrics
-from ._metrics import NonFiniteError as NonFiniteError
-from ._metrics import TagInfo as TagInfo
+from ._report import HistogramData as HistogramData
+from ._report import Record as Record
+from ._report import Writer as Writer
 from ._spec import Ema as Ema
 from ._spec import Histogram as Histogram
 from ._spec import Logged as Logged
@@ -17,15 +19,13 @@ from ._spec import ema as ema
 from ._spec import histogram as histogram
 from ._spec import window as window
 from ._state import MetricsState as MetricsState
-from ._step import Transition as Transition
-from ._step import wrap_step as wrap_step
+from ._tags import TagInfo as TagInfo
+from ._wrap_step import Transition as Transition
+from ._wrap_step import wrap_step as wrap_step
 from ._writers import ConsoleWriter as ConsoleWriter
-from ._writers import HistogramData as HistogramData
 from ._writers import JsonlWriter as JsonlWriter
 from ._writers import MemoryWriter as MemoryWriter
-from ._writers import Record as Record
 from ._writers import TensorBoardWriter as TensorBoardWriter
-from ._writers import Writer as Writer
 
 __version__ = "0.1.0"
 

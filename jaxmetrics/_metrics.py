@@ -1,7 +1,5 @@
 """The `Metrics` spec: static configuration plus the pure functions over `MetricsState`."""
 
-import dataclasses
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -9,35 +7,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _count, _episode, _stream, _tags
+from . import _count, _episode, _reductions, _statistics, _stream, _tags
 from ._count import Count
 from ._layout import env_layout, like
-from ._spec import (
-    EPISODE_REDUCTIONS,
-    Logged,
-    MetricSpec,
-    Term,
-    check_name,
-    check_policy,
-    parse_stats,
-)
+from ._spec import Logged, MetricSpec, Term, check_name, check_policy, parse_stats
 from ._state import MetricsState
+from ._tags import TagInfo
 
 BUILTIN_COUNTERS = ("env_steps", "episodes")
-
-
-@dataclasses.dataclass(frozen=True)
-class TagInfo:
-    """What a report tag holds: `group` is "episode", "logged" or "counter"."""
-
-    tag: str
-    group: str
-    metric: str
-    stat: str
-
-
-class NonFiniteError(FloatingPointError):
-    """Raised at flush for metrics whose nonfinite policy is "raise"."""
 
 
 def _is_numeric(dtype) -> bool:
@@ -89,11 +66,7 @@ def _flatten_terms(terms: Mapping[str, Any], policy: str) -> tuple[list[Term], l
         else:
             reduces = {o: t.reduce for o in outputs}
         for r in reduces.values():
-            if r not in EPISODE_REDUCTIONS:
-                raise ValueError(
-                    f"{where}: unknown episode reduction {r!r}; expected one of "
-                    f"{EPISODE_REDUCTIONS}."
-                )
+            _reductions.check(r, where)
         stats = parse_stats(t.stats, where)
         nonfinite = check_policy(t.nonfinite if t.nonfinite is not None else policy, where)
         for o in outputs:
@@ -117,19 +90,6 @@ def _flatten_logged(logged: Mapping[str, Any] | Sequence[str], policy: str) -> l
         nonfinite = check_policy(spec.nonfinite if spec.nonfinite is not None else policy, where)
         specs.append(MetricSpec(name, name, None, parse_stats(spec.stats, where), nonfinite))
     return specs
-
-
-def _stats_of(spec: MetricSpec) -> list[str]:
-    s = spec.stats
-    names = [k for k in ("mean", "std", "min", "max", "sum", "count") if k in s.simple]
-    if s.ema is not None:
-        names.append("ema")
-    if s.window is not None:
-        names += ["window_mean", "window_std", "window_min", "window_max", "window_values"]
-        names += [f"window_p{p:g}" for p in s.window.percentiles]
-    if s.histogram is not None:
-        names.append("histogram")
-    return names + ["nonfinite"]
 
 
 class Metrics:
@@ -209,13 +169,11 @@ class Metrics:
         infos: list[TagInfo] = []
         for group, specs in (("episode", self._ep_defined), ("logged", lg_specs)):
             for s in specs:
-                for stat in _stats_of(s):
-                    infos.append(
-                        TagInfo(_tags.tag(self.prefixes[group], s.name, stat), group, s.name, stat)
-                    )
+                for stat in _statistics.reported(s.stats):
+                    infos.append(_tags.info(self.prefixes[group], group, s.name, stat))
         for c in self.counter_names:
-            infos.append(TagInfo(_tags.tag(counter_prefix, c, "mean"), "counter", c, "count"))
-        _tags.check_unique((i.tag, f"{i.group} {i.metric!r} ({i.stat})") for i in infos)
+            infos.append(_tags.info(counter_prefix, "counter", c, "total"))
+        _tags.check_unique((i.tag, _tags.origin(i)) for i in infos)
         self.tags: tuple[TagInfo, ...] = tuple(infos)
 
     # ------------------------------------------------------------------ static views
@@ -647,7 +605,7 @@ class Metrics:
                 continue
             rows = _stream.compute(plan, st)
             for i, spec in enumerate(plan.rows):
-                for stat in _stats_of(spec):
+                for stat in _statistics.reported(spec.stats):
                     out[_tags.tag(self.prefixes[group], spec.name, stat)] = rows[i][stat]
         if include_running and state.running is not None:
             run = _episode.running(self._episode_plan, state.running)
@@ -664,7 +622,7 @@ class Metrics:
                 assert state.counters is not None
                 j = self._stored_counters.index(c)
                 value = Count(state.counters.hi[j], state.counters.lo[j])
-            out[_tags.tag(self._counter_prefix, c, "mean")] = value
+            out[_tags.tag(self._counter_prefix, c, "total")] = value
         return out
 
     # ------------------------------------------------------------------ host side
@@ -682,22 +640,21 @@ class Metrics:
                 out[k] = float(a) if a.ndim == 0 else a
         return out
 
-    def check_nonfinite(self, host_report: Mapping[str, Any]) -> None:
-        """Host side: warns (policy "skip") or raises `NonFiniteError` (policy "raise") for
-        each metric that saw non-finite values, naming it."""
-        raising = []
-        for info in self.tags:
-            if info.stat != "nonfinite":
-                continue
-            n = host_report.get(info.tag, 0)
-            if not n:
-                continue
-            policy = self.metric_specs[info.metric].nonfinite
-            kind = "term" if info.group == "episode" else "logged value"
-            msg = f"{kind} {info.metric!r}: {n} non-finite value(s) left out ({info.tag})"
-            if policy == "raise":
-                raising.append(msg)
-            elif policy == "skip":
-                warnings.warn(msg, RuntimeWarning, stacklevel=2)
-        if raising:
-            raise NonFiniteError("; ".join(raising))
+    def nonfinite(self, host_report: Mapping[str, Any]) -> list[tuple[TagInfo, str, int]]:
+        """Host side: the metrics of `host_report` (from `to_host`) that saw non-finite
+        values, in tag order.
+
+        Returns:
+          `(info, policy, count)` per such metric: the `TagInfo` of its `/nonfinite` tag
+          (naming the metric and its group), its nonfinite policy ("skip", "propagate" or
+          "raise") and the count. A `Logger` warns or raises accordingly, naming the run
+          and the step.
+        """
+        specs = {("episode", s.name): s for s in self._ep_defined}
+        specs.update({("logged", s.name): s for s in (self._lg_plan.rows if self._lg_plan else ())})
+        out = []
+        for i in self.tags:
+            count = host_report.get(i.tag, 0) if i.stat == "nonfinite" else 0
+            if count:
+                out.append((i, specs[(i.group, i.metric)].nonfinite, int(count)))
+        return out

@@ -8,8 +8,9 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
-EPISODE_REDUCTIONS = ("mean", "sum", "max", "min", "last", "std")
-SIMPLE_STATS = ("mean", "std", "min", "max", "sum", "count")
+from ._statistics import SIMPLE_STATS
+from ._validate import is_int, is_number
+
 NONFINITE_POLICIES = ("skip", "propagate", "raise")
 DEFAULT_STATS = ("mean", "std", "min", "max", "count")
 
@@ -25,7 +26,7 @@ class Ema:
 
     def __post_init__(self):
         c = self.coeff
-        if isinstance(c, bool) or not isinstance(c, (int, float)) or not (0.0 < c <= 1.0):
+        if not is_number(c) or not (0.0 < c <= 1.0):
             raise ValueError(
                 f"ema coefficient must be a number in (0, 1], got {c!r}. "
                 "Use e.g. jaxmetrics.ema(0.01): 0.01 weighs the newest value 1%."
@@ -44,18 +45,19 @@ class Window:
 
     def __post_init__(self):
         n = self.size
-        if isinstance(n, bool) or not isinstance(n, int) or n <= 0:
+        if not is_int(n) or n <= 0:
             raise ValueError(
                 f"window size must be a positive int, got {n!r}. Use e.g. jaxmetrics.window(100)."
             )
         ps = tuple(self.percentiles)
         for p in ps:
-            if isinstance(p, bool) or not isinstance(p, (int, float)) or not (0 <= p <= 100):
+            if not is_number(p) or not (0 <= p <= 100):
                 raise ValueError(
                     f"window percentiles must be numbers in [0, 100], got {p!r} in {ps!r}."
                 )
         if len(set(ps)) != len(ps):
             raise ValueError(f"window percentiles must be distinct, got {ps!r}.")
+        object.__setattr__(self, "size", int(n))
         object.__setattr__(self, "percentiles", tuple(float(p) for p in ps))
 
 
@@ -72,15 +74,16 @@ class Histogram:
 
     def __post_init__(self):
         b = self.bins
-        if isinstance(b, bool) or not isinstance(b, int) or b <= 0:
+        if not is_int(b) or b <= 0:
             raise ValueError(f"histogram bins must be a positive int, got {b!r}.")
         r = tuple(self.range)
-        if len(r) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in r):
+        if len(r) != 2 or not all(is_number(v) and math.isfinite(v) for v in r):
             raise ValueError(
                 f"histogram range must be two finite numbers (lo, hi), got {self.range!r}."
             )
         if not r[0] < r[1]:
             raise ValueError(f"histogram range needs lo < hi, got {r!r}.")
+        object.__setattr__(self, "bins", int(b))
         object.__setattr__(self, "range", (float(r[0]), float(r[1])))
 
 

@@ -9,7 +9,7 @@ dispatch and a Python call per leaf, which dominates a flush long before the byt
 """
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, NamedTuple
 
 import jax
@@ -28,34 +28,49 @@ class _Slot(NamedTuple):
 
 
 class Packer:
-    """Packs reports of one spec; the layout is fixed by the first trace of `pack`."""
+    """Packs the reports of one spec; the layout is fixed when the packer is built.
 
-    def __init__(self, dtype: Any):
+    Args:
+      report: the report's shapes, e.g. `jax.eval_shape` of `Metrics.compute`: tag ->
+        `jax.ShapeDtypeStruct` (anything with a `shape`), or a `Count` of them.
+      order: the tags in the order `unpack` returns them (every tag of `report`).
+      dtype: the float dtype of the packed statistics.
+    """
+
+    def __init__(self, report: Mapping[str, Any], order: Sequence[str], dtype: Any):
+        if sorted(order) != sorted(report):
+            raise ValueError("Packer: `order` must list every tag of the report once.")
         self._dtype = jnp.dtype(dtype)
-        self._layout: tuple[_Slot, ...] | None = None
-
-    def pack(self, report: Mapping[str, Any]) -> tuple[jax.Array, jax.Array]:
-        """In-graph: `(floats [F], counts uint32 [2, K])`."""
-        floats, his, los, layout = [], [], [], []
-        f_off = c_off = 0
-        for tag, v in report.items():
+        layout, f_off, c_off = [], 0, 0
+        for tag in order:
+            v = report[tag]
             if isinstance(v, Count):
                 layout.append(_Slot(tag, True, c_off, tuple(v.hi.shape)))
-                his.append(jnp.ravel(v.hi))
-                los.append(jnp.ravel(v.lo))
                 c_off += math.prod(v.hi.shape)
             else:
-                a = jnp.asarray(v)
-                layout.append(_Slot(tag, False, f_off, tuple(a.shape)))
+                layout.append(_Slot(tag, False, f_off, tuple(v.shape)))
+                f_off += math.prod(v.shape)
+        self._layout = tuple(layout)
+
+    def pack(self, report: Mapping[str, Any]) -> tuple[jax.Array, jax.Array]:
+        """In-graph: `(floats [F], counts uint32 [2, K])`.
+
+        Raises:
+          ValueError: the report's tags or shapes differ from the layout.
+        """
+        if sorted(report) != sorted(s.tag for s in self._layout):
+            raise ValueError(self._DIFFERS)
+        floats, his, los = [], [], []
+        for s in self._layout:
+            v = report[s.tag]
+            a = v.hi if isinstance(v, Count) else jnp.asarray(v)
+            if isinstance(v, Count) != s.is_count or tuple(a.shape) != s.shape:
+                raise ValueError(self._DIFFERS)
+            if isinstance(v, Count):
+                his.append(jnp.ravel(v.hi))
+                los.append(jnp.ravel(v.lo))
+            else:
                 floats.append(jnp.ravel(a).astype(self._dtype))
-                f_off += a.size
-        slots = tuple(layout)
-        if self._layout is None:
-            self._layout = slots
-        elif slots != self._layout:
-            raise ValueError(
-                "the report's layout changed between traces; a Logger serves one Metrics spec."
-            )
         f = jnp.concatenate(floats) if floats else jnp.zeros((0,), self._dtype)
         c = (
             jnp.stack([jnp.concatenate(his), jnp.concatenate(los)])
@@ -64,9 +79,13 @@ class Packer:
         )
         return f, c
 
+    _DIFFERS = (
+        "the report's layout differs from the one the Logger was built for; a Logger "
+        "serves one Metrics spec (and one include_running setting)."
+    )
+
     def any_nonzero(self, counts: np.ndarray, tags: Iterable[str]) -> bool:
         """Host: whether any of the count `tags` is non-zero in one element's counts."""
-        assert self._layout is not None, "any_nonzero before any pack was traced"
         wanted = set(tags)
         cols = [
             i
@@ -81,7 +100,6 @@ class Packer:
     ) -> dict[str, Any]:
         """Host: the report (or only `tags`) from one element's packed arrays; scalars
         become floats, counts exact Python ints (int64 arrays when not scalar)."""
-        assert self._layout is not None, "unpack before any pack was traced"
         wanted = None if tags is None else set(tags)
         out: dict[str, Any] = {}
         for s in self._layout:

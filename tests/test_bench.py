@@ -69,6 +69,7 @@ def result(tmp_path_factory):
     return doc, tables, printed.getvalue()
 
 
+@pytest.mark.slow
 def test_json_has_environment_and_every_scenario(result):
     doc, tables, _ = result
     env = doc["environment"]
@@ -86,6 +87,7 @@ def test_json_has_environment_and_every_scenario(result):
             assert len(row) == len(s["columns"]), name
 
 
+@pytest.mark.slow
 def test_tables_are_printed_as_markdown(result):
     doc, _, printed = result
     for s in doc["scenarios"].values():
@@ -93,6 +95,7 @@ def test_tables_are_printed_as_markdown(result):
         assert "| " + " | ".join(s["columns"]) + " |" in printed
 
 
+@pytest.mark.slow
 def test_rows_cover_the_requested_sizes(result):
     doc, _, _ = result
     sc = doc["scenarios"]
@@ -126,6 +129,7 @@ def _episode_sums_f64(xs: np.ndarray, dones: np.ndarray, row: int) -> tuple[floa
     return total, episodes
 
 
+@pytest.mark.slow
 def test_isolated_floor_and_jaxmetrics_match_a_float64_reference(result):
     doc, _, _ = result
     check = doc["scenarios"]["isolated"]["data"]["check"]
@@ -142,6 +146,7 @@ def test_isolated_floor_and_jaxmetrics_match_a_float64_reference(result):
         np.testing.assert_allclose(check["floor_totals"][name], want, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_rollout_loggers_report_the_same_episodes(result):
     doc, _, _ = result
     check = doc["scenarios"]["end_to_end"]["data"]["check"]
@@ -157,6 +162,7 @@ def test_rollout_loggers_report_the_same_episodes(result):
         np.testing.assert_allclose(numpy_totals[i], check["jaxmetrics_sums"][name], rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_targets_table_judges_what_ran(result):
     doc, _, _ = result
     rows = {r[0]: r for r in doc["scenarios"]["targets"]["rows"]}

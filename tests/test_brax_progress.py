@@ -3,8 +3,8 @@
 The end-to-end test runs `brax.training.agents.ppo.train` for a tiny budget and compares
 what TensorBoard's reader finds in the event files with the dicts Brax passed."""
 
-import contextlib
 import math
+import os
 
 import jax
 import jax._src.api
@@ -29,13 +29,6 @@ def read_scalars(run_dir) -> dict[str, dict[int, list[float]]]:
         for e in acc.Scalars(tag):
             out.setdefault(tag, {}).setdefault(e.step, []).append(e.value)
     return out
-
-
-@contextlib.contextmanager
-def brax_promotion():
-    # Brax/MJX rely on implicit promotion; the suite runs strict (conftest).
-    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
-        yield
 
 
 # Every key Brax 0.14's PPO passes to progress_fn (plus env components and an unknown key)
@@ -125,6 +118,13 @@ def test_bad_input_is_named():
         progress_fn(0, {})
 
 
+def test_a_run_that_fails_before_the_first_report_leaves_no_event_file(tmp_path):
+    with pytest.raises(RuntimeError, match="Brax failed"):
+        with jmb.ProgressFn([jm.TensorBoardWriter(tmp_path)]):
+            raise RuntimeError("Brax failed before its first report")
+    assert os.listdir(tmp_path) == []
+
+
 @pytest.fixture
 def brax_ppo_on_this_jax(monkeypatch):
     # brax 0.14.2's ppo.train calls jax.device_put_replicated, which JAX 0.10 removed from
@@ -135,6 +135,7 @@ def brax_ppo_on_this_jax(monkeypatch):
     )
 
 
+@pytest.mark.slow
 def test_brax_ppo_reports_through_the_writers(tmp_path, brax_ppo_on_this_jax):
     seen: list[tuple[int, dict[str, float]]] = []
     with jmb.ProgressFn([jm.TensorBoardWriter(tmp_path)]) as adapter:
@@ -143,7 +144,7 @@ def test_brax_ppo_reports_through_the_writers(tmp_path, brax_ppo_on_this_jax):
             seen.append((int(step), {k: float(v) for k, v in metrics.items()}))
             adapter(step, metrics)
 
-        with brax_promotion():
+        with jmb.default_promotion():  # the suite runs strict (conftest)
             brax_ppo.train(
                 environment=envs.get_environment("inverted_pendulum", backend="mjx"),
                 num_timesteps=1024,

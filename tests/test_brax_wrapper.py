@@ -6,7 +6,10 @@ AutoResetWrapper, so they hold the terminal step's values), or read from Brax's 
 EpisodeWrapper run side by side on the same actions.
 """
 
-import contextlib
+import os
+import pathlib
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -32,13 +35,6 @@ METRIC_NAMES = ("upright", "effort", "cart_x", "pole_angle", "qd_cart", "qd_pole
 # the others fall after 4 to ~25 steps: very different episode lengths across envs.
 GAIN = np.array([1.0, 1.0, 0.5, 0.5, 0.0, 0.0, -0.5, 0.0], np.float32)
 NOISE = np.array([0.0, 0.3, 0.0, 0.5, 1.0, 0.2, 0.0, 0.0], np.float32)
-
-
-@contextlib.contextmanager
-def brax_promotion():
-    """Brax's own wrappers need JAX's default promotion (conftest makes it strict)."""
-    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
-        yield
 
 
 class Pendulum(InvertedPendulum):
@@ -135,14 +131,14 @@ def run_side_by_side(backend, steps):
 
     def run(reset_keys, step_keys):
         s_ours = ours.reset(reset_keys)
-        with brax_promotion():
+        with jmb.default_promotion():
             s_theirs = theirs.reset(reset_keys)
 
         def body(carry, key):
             s_ours, s_theirs = carry
             action = policy(s_ours.obs, key)
             s_ours = ours.step(s_ours, action)
-            with brax_promotion():
+            with jmb.default_promotion():
                 s_theirs = theirs.step(s_theirs, action)
             return (s_ours, s_theirs), (record(s_ours), record(s_theirs), action)
 
@@ -222,10 +218,12 @@ def check_against_brax(pendulum):
         np.testing.assert_allclose(reported(pendulum["report"], name), expected, rtol=2e-5)
 
 
+@pytest.mark.slow
 def test_per_episode_values_match_python_unroll(pendulum):
     check_against_unroll(pendulum)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", ["positional"])
 def test_other_backends_match_unroll_and_brax(backend):
     pendulum = run_side_by_side(backend, 30)
@@ -234,6 +232,7 @@ def test_other_backends_match_unroll_and_brax(backend):
     check_against_brax(pendulum)
 
 
+@pytest.mark.slow
 def test_terms_see_the_terminal_state_not_the_auto_reset_one(pendulum):
     r = pendulum["ours"]
     done = r["done"] != 0
@@ -247,10 +246,12 @@ def test_terms_see_the_terminal_state_not_the_auto_reset_one(pendulum):
     assert np.all(np.abs(final[ended_terminated]) > 0.2)
 
 
+@pytest.mark.slow
 def test_episode_sums_equal_brax_episode_wrapper(pendulum):
     check_against_brax(pendulum)
 
 
+@pytest.mark.slow
 def test_brax_info_keys_are_a_drop_in_for_episode_wrapper(pendulum):
     ours, theirs = pendulum["ours"], pendulum["theirs"]
     for key in (*BRAX_KEYS, "reward"):
@@ -261,6 +262,7 @@ def test_brax_info_keys_are_a_drop_in_for_episode_wrapper(pendulum):
         np.testing.assert_allclose(ours["episode_metrics"][key], value, rtol=1e-5, err_msg=key)
 
 
+@pytest.mark.slow
 def test_episode_lengths_differ_widely_across_envs(pendulum):
     r = pendulum["ours"]
     done = r["done"] != 0
@@ -280,6 +282,7 @@ def test_episode_lengths_differ_widely_across_envs(pendulum):
     assert report["Episode_Metrics/length/max"] == EPISODE_LENGTH
 
 
+@pytest.mark.slow
 def test_replace_metrics_state_starts_a_new_period(pendulum):
     metrics, final = pendulum["metrics"], pendulum["final"]
     ms = jmb.metrics_state(final)
@@ -336,7 +339,7 @@ def repeated():
 
     def run(reset_keys, step_keys):
         s_ours = ours.reset(reset_keys)
-        with brax_promotion():
+        with jmb.default_promotion():
             first = batched.reset(reset_keys)
 
         def body(carry, key):
@@ -344,7 +347,7 @@ def repeated():
             action = policy(s_ours.obs, key)
             s_ours = ours.step(s_ours, action)
             subs = []
-            with brax_promotion():
+            with jmb.default_promotion():
                 for _ in range(REPEAT):
                     s_ref = batched.step(s_ref, action)
                     subs.append(dict(reward=s_ref.reward, metrics=s_ref.metrics, done=s_ref.done))
@@ -383,6 +386,7 @@ def repeated():
     return metrics.to_host(report), jax.device_get(rec)
 
 
+@pytest.mark.slow
 def test_action_repeat_folds_every_substep(repeated):
     report, rec = repeated
     np.testing.assert_array_equal(rec["ours_done"] != 0, rec["done"])
@@ -419,6 +423,7 @@ def test_action_repeat_folds_every_substep(repeated):
     np.testing.assert_allclose(reported(report, "joint_vel"), expected, rtol=2e-5)
 
 
+@pytest.mark.slow
 def test_action_repeat_brax_keys_keep_only_the_last_substep_metrics(repeated):
     # Brax's EpisodeWrapper semantics (google/brax#610), reproduced in info['episode_metrics']
     # for drop-in compatibility; the jaxmetrics term counts every sub-step.
@@ -434,6 +439,7 @@ def test_action_repeat_brax_keys_keep_only_the_last_substep_metrics(repeated):
 # ---------------------------------------------------------------- ant, once
 
 
+@pytest.mark.slow
 def test_ant_reward_components_and_return_match_unroll():
     num_envs, steps, length = 4, 24, 10
     base = envs.get_environment("ant", backend="mjx")
@@ -577,3 +583,39 @@ def test_step_returns_the_types_reset_gives_so_host_loops_compile_once():
         zip(jax.tree.leaves(reset), jax.tree.leaves(stepped)),
     ):
         assert (a.shape, a.dtype, a.weak_type) == (b.shape, b.dtype, b.weak_type), path[0]
+
+
+_QUIET = """
+import warnings
+before = list(warnings.filters)
+import jaxmetrics.brax
+# numpy and scipy add filters of their own when imported; none may be a blanket "ignore".
+added = [f for f in warnings.filters if f not in before]
+assert not [f for f in added if f[0] == "ignore" and f[1] is None], added
+brax = [f for f in added if f[1] is not None and "brax" in f[1].pattern.lower()]
+print(len(brax), brax[0][0], brax[0][2].__name__, brax[0][3].pattern)
+from brax import envs
+envs.get_environment("inverted_pendulum", backend="mjx")
+warnings.warn_explicit(
+    "Brax System, piplines and environments are not actively being maintained",
+    UserWarning, "elsewhere.py", 1, module="elsewhere",
+)
+"""
+
+
+def test_importing_jaxmetrics_brax_hides_the_two_known_notices_and_nothing_else():
+    root = pathlib.Path(__file__).resolve().parents[1]
+    out = subprocess.run(
+        [sys.executable, "-W", "default", "-c", _QUIET],
+        capture_output=True,
+        text=True,
+        cwd=root,
+        env=dict(os.environ, JAX_PLATFORMS="cpu"),
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [r"1 ignore UserWarning brax\.io\.mjcf"]  # no warp lines
+    # Brax's own warning is gone; the same text from elsewhere, and other warnings (jaxopt's
+    # deprecation, shown under -W default), still get through.
+    assert out.stderr.count("not actively being maintained") == 1
+    assert "elsewhere.py:1: UserWarning" in out.stderr
+    assert "JAXopt is no longer maintained" in out.stderr

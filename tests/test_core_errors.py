@@ -174,8 +174,20 @@ def test_nonfinite_policies_at_flush():
     )
     s = m.update(m.init(2), jnp.asarray([jnp.nan, 1.0]), jnp.ones(2, bool))
     host = m.to_host(m.compute(s))
-    with pytest.raises(jm.NonFiniteError, match=r"term 'raised': 1 non-finite value") as err:
-        with pytest.warns(RuntimeWarning, match=r"term 'warned': 1 non-finite value"):
-            m.check_nonfinite(host)
-    assert "quiet" not in str(err.value)
+    # The spec reports what it saw and each metric's policy; it neither warns nor raises.
+    found = [(i.tag, policy, n) for i, policy, n in m.nonfinite(host)]
+    assert found == [
+        ("Episode_Metrics/warned/nonfinite", "skip", 1),
+        ("Episode_Metrics/raised/nonfinite", "raise", 1),
+        ("Episode_Metrics/quiet/nonfinite", "propagate", 1),
+    ]
+    assert m.nonfinite(m.to_host(m.compute(m.init(2)))) == []
     assert host["Episode_Metrics/raised"] == 1.0  # left out, as under "skip"
+    # The logger applies the policies: "skip" warns, "raise" raises, naming run and step.
+    memory = jm.MemoryWriter()
+    with pytest.raises(jm.NonFiniteError, match=r"step 3, run 0: term 'raised': 1 non") as err:
+        with pytest.warns(RuntimeWarning, match=r"step 3, run 0: term 'warned': 1 non"):
+            with jm.Logger(m, [memory]) as logger:
+                logger.flush(s, 3)
+    assert "quiet" not in str(err.value)
+    assert [r.step for r in memory.records] == [3]

@@ -1,6 +1,7 @@
 """The host flush: non-blocking, drained in order by close(), durable across SIGKILL,
 deterministic non-finite errors, counters per second, timers, vmapped runs."""
 
+import inspect
 import json
 import os
 import signal
@@ -152,7 +153,7 @@ def test_nonfinite_raise_surfaces_at_the_next_flush_without_losing_data(tmp_path
     path = tmp_path / "m.jsonl"
     logger = jm.Logger(metrics, [jm.JsonlWriter(path)])
     state = logger.flush(metrics.log(metrics.init(1), {"x": jnp.float32(np.nan)}), 0)
-    with pytest.raises(jm.NonFiniteError, match="step 0: .*'x': 1 non-finite"):
+    with pytest.raises(jm.NonFiniteError, match="step 0, run 0: logged value 'x': 1 non-finite"):
         logger.flush(metrics.log(state, {"x": jnp.float32(2.0)}), 1)
     logger.close()
     with open(path) as f:
@@ -166,9 +167,30 @@ def test_nonfinite_raise_in_the_last_flush_surfaces_at_close(tmp_path):
     logger = jm.Logger(metrics, [memory])
     state = logger.flush(metrics.log(metrics.init(1), {"x": jnp.float32(1.0)}), 0)
     logger.flush(metrics.log(state, {"x": jnp.float32(np.inf)}), 1)
-    with pytest.raises(jm.NonFiniteError, match="step 1: "):
+    with pytest.raises(jm.NonFiniteError, match="step 1, run 0: "):
         logger.close()
     assert [r.step for r in memory.records] == [0, 1]
+
+
+def test_nonfinite_skip_warns_at_the_callers_line_naming_metric_run_and_step():
+    metrics = _log_metrics()
+    logger = jm.Logger(metrics, lambda run: [jm.MemoryWriter()], runs=2)
+    log = jax.vmap(lambda s, v: metrics.log(s, {"x": v}))
+    state = jax.vmap(lambda _: metrics.init(1))(jnp.arange(2))
+    state = logger.flush(log(state, jnp.array([1.0, np.nan], jnp.float32)), 4)
+    want = (
+        r"^step 4, run 1: logged value 'x': 1 non-finite value\(s\) left out \(Train/x/nonfinite\)$"
+    )
+    with pytest.warns(RuntimeWarning, match=want) as caught:
+        line = inspect.currentframe().f_lineno + 1
+        state = logger.flush(state, 5)
+    assert len(caught) == 1  # run 0 was clean
+    assert (caught[0].filename, caught[0].lineno) == (__file__, line)
+    state = logger.flush(log(state, jnp.array([np.inf, 2.0], jnp.float32)), 6)
+    with pytest.warns(RuntimeWarning, match="step 6, run 0: ") as caught:
+        line = inspect.currentframe().f_lineno + 1
+        logger.close()
+    assert (caught[0].filename, caught[0].lineno) == (__file__, line)
 
 
 def test_writer_errors_surface_on_the_callers_thread():
@@ -209,6 +231,39 @@ def test_counters_per_second_are_growth_over_host_time_between_flushes():
             assert cur.scalars[f"Counters/{c}"] - prev.scalars[f"Counters/{c}"] == inc
             assert cur.scalars[f"Counters/{c}/per_sec"] == pytest.approx(inc / dt)
     assert [x.scalars["Counters/episodes"] for x in r] == [0, 1, 3]
+
+
+def test_records_are_stamped_when_the_device_has_computed_the_report():
+    # A host loop runs ahead of the device (flush returns once it has dispatched): rates
+    # over dispatch times would be far too high (the PPO demo's first steps/s read 20x
+    # its steady value). Records carry the time their report reached the host instead.
+    metrics = jm.Metrics(logged=["x"], counters=["updates"])
+    a = jax.random.normal(jax.random.key(0), (512, 512), jnp.float32) / 32.0
+
+    @jax.jit
+    def iteration(state):
+        y = jax.lax.fori_loop(0, 40, lambda i, y: jnp.tanh(y @ a), a)
+        return metrics.increment(metrics.log(state, {"x": jnp.sum(y)}), "updates")
+
+    state = jax.block_until_ready(iteration(metrics.init(1)))  # compiled
+    timings = []
+    for _ in range(3):
+        start = time.perf_counter()
+        jax.block_until_ready(iteration(state))
+        timings.append(time.perf_counter() - start)
+    seconds = min(timings)  # one iteration on the device, least disturbed by other load
+    memory = jm.MemoryWriter()
+    with jm.Logger(metrics, [memory]) as logger:
+        logger.flush(state, 0)  # compiles the flush
+        logger.wait()
+        start = time.time()
+        for step in (1, 2, 3):
+            state = logger.flush(iteration(state), step)
+    records = memory.records[1:]
+    for k, r in enumerate(records, start=1):
+        assert r.wall_time - start >= 0.5 * k * seconds, (k, r.wall_time - start, seconds)
+    for r in records[1:]:
+        assert r.scalars["Counters/updates/per_sec"] <= 2.0 / seconds
 
 
 def test_timers_report_seconds_per_period_and_zero_once_idle():
@@ -275,6 +330,32 @@ def test_flush_moves_o_metrics_bytes_whatever_num_envs():
     # mean, window mean/std/min/max + 8 window values as float32; nonfinite and the two
     # counters as uint32 hi/lo pairs.
     assert sizes == [(5 + 8) * 4 + 3 * 2 * 4] * 2
+
+
+def test_packer_layout_comes_from_shapes_before_anything_is_traced():
+    from jaxmetrics._transfer import Packer
+
+    metrics = jm.Metrics(logged=["x"], counters=["u"])
+    shapes = jax.eval_shape(lambda: metrics.compute(metrics.init(1)))
+    packer = Packer(shapes, [i.tag for i in metrics.tags], jnp.float32)
+    floats = np.arange(4, dtype=np.float32)
+    counts = np.array([[0, 0, 1], [5, 2, 7]], np.uint32)  # hi and lo words
+    assert packer.unpack(floats, counts) == {
+        "Train/x": 0.0,
+        "Train/x/std": 1.0,
+        "Train/x/min": 2.0,
+        "Train/x/max": 3.0,
+        "Train/x/count": 5,
+        "Train/x/nonfinite": 2,
+        "Counters/u": 2**32 + 7,
+    }
+    state = metrics.increment(metrics.log(metrics.init(1), {"x": jnp.float32(3.0)}), "u")
+    report = metrics.compute(state)
+    got = packer.unpack(*(np.asarray(a) for a in jax.jit(packer.pack)(report)))
+    want = metrics.to_host(report)
+    assert got == want and list(got) == [i.tag for i in metrics.tags]
+    with pytest.raises(ValueError, match="one Metrics spec"):
+        packer.pack({k: v for k, v in report.items() if k != "Counters/u"})
 
 
 def test_counters_past_2_to_the_32_reach_writers_exactly():

@@ -17,6 +17,7 @@ from mujoco import mjx
 from reference import episode_values
 
 import jaxmetrics as jm
+import jaxmetrics.brax as jmb
 
 # An inverted pole on a hinge with a motor: it falls unless pushed back.
 XML = """
@@ -41,7 +42,7 @@ STATS = ("mean", "std", "min", "max", "count", jm.window(128))
 def make_step(model):
     def step(data, action):
         # mjx's internals rely on JAX's default promotion (conftest makes it strict).
-        with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        with jmb.default_promotion():
             data = jax.vmap(mjx.step, in_axes=(None, 0))(model, data.replace(ctrl=action))
         angle = data.qpos[:, 0]
         reward = jnp.cos(angle) - 0.1 * action[:, 0] * action[:, 0]
@@ -113,6 +114,7 @@ def rollout():
     return metrics.to_host(report), jax.device_get(rec), np.asarray(start_angle)
 
 
+@pytest.mark.slow
 def test_raw_mjx_loop_matches_python_unroll(rollout):
     report, rec, start_angle = rollout
     done = rec["done"]
@@ -142,6 +144,7 @@ def test_raw_mjx_loop_matches_python_unroll(rollout):
     np.testing.assert_array_equal(rec["obs"][..., 0], rec["qpos"])
 
 
+@pytest.mark.slow
 def test_raw_mjx_episodes_end_both_ways_with_varied_lengths(rollout):
     report, rec, _ = rollout
     done = rec["done"]

@@ -2,7 +2,7 @@
 here), the host loop and the fully-jitted mode write the same values, vmapped seeds each go
 to their own run, and its pieces (GAE, observation statistics) match numpy references."""
 
-import contextlib
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -42,13 +42,6 @@ def tags_at(scalars: dict[str, dict[int, float]], step: int) -> set[str]:
     return {t for t, by_step in scalars.items() if step in by_step}
 
 
-@contextlib.contextmanager
-def brax_promotion():
-    # Brax/MJX rely on implicit promotion; the suite runs strict (conftest).
-    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
-        yield
-
-
 @pytest.fixture(scope="module")
 def host_run(tmp_path_factory):
     result = ppo.train(CONFIG, str(tmp_path_factory.mktemp("host")), progress=False)
@@ -72,7 +65,7 @@ def random_policy_return(num_envs: int = 64, steps: int = 200) -> float:
 
         return jax.lax.scan(step, state, jax.random.split(key, steps))[1]
 
-    with brax_promotion():
+    with jmb.default_promotion():  # the suite runs strict (conftest)
         rewards, dones = jax.jit(rollout)(jax.random.PRNGKey(123))  # Brax: raw uint32 keys
     rewards, dones = np.asarray(rewards, np.float64), np.asarray(dones) > 0
     returns, running = [], np.zeros(num_envs)
@@ -84,6 +77,7 @@ def random_policy_return(num_envs: int = 64, steps: int = 200) -> float:
     return float(np.mean(returns))
 
 
+@pytest.mark.slow
 def test_ppo_learns_clearly_above_a_random_policy(host_run):
     result, scalars = host_run
     baseline = random_policy_return()
@@ -98,6 +92,7 @@ def test_ppo_learns_clearly_above_a_random_policy(host_run):
     assert result.last[0]["Episode_Metrics/episode_return/window_mean"] == pytest.approx(last)
 
 
+@pytest.mark.slow
 def test_every_metric_is_flushed_each_iteration(host_run):
     result, scalars = host_run
     steps = [SPI * (i + 1) for i in range(CONFIG.num_iterations)]
@@ -137,6 +132,7 @@ def assert_same_reports(got, want, steps, what):
             )
 
 
+@pytest.mark.slow
 def test_in_graph_mode_writes_what_the_host_loop_writes(host_run, tmp_path):
     _, host = host_run
     graph = ppo.train(CONFIG, str(tmp_path), mode="graph", iterations=SHORT, progress=False)
@@ -146,6 +142,7 @@ def test_in_graph_mode_writes_what_the_host_loop_writes(host_run, tmp_path):
     assert_same_reports(got, host, steps, "graph vs host")
 
 
+@pytest.mark.slow
 def test_vmapped_seeds_each_write_their_own_run(host_run, tmp_path):
     _, host = host_run
     result = ppo.train(
@@ -277,3 +274,20 @@ def test_devices_split_the_envs_and_the_rollout_loop_stays_shard_local(tmp_path)
     assert "all-reduce" in _hlo.collectives(sgd), sgd
     ms = jmb.metrics_state(state.env_state)
     assert ms.ended.hi.shape == (2,)
+
+
+@pytest.mark.parametrize(
+    "argv0, prog",
+    [
+        ("/venv/bin/jaxmetrics-ppo", "jaxmetrics-ppo"),  # the installed script
+        (ppo.__file__, "python -m jaxmetrics.examples.ppo"),  # python -m
+    ],
+)
+def test_help_names_the_program_it_was_started_as(argv0, prog, monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", [argv0, "--help"])
+    with pytest.raises(SystemExit) as exit_:
+        ppo.main(["--help"])
+    assert exit_.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert out.startswith(f"usage: {prog} [-h]")
+    assert "to the maximum return (1,000) in under a minute" in out

@@ -98,6 +98,7 @@ def written(tmp_path_factory):
     memory = jm.MemoryWriter()
     writers = [
         jm.TensorBoardWriter(root / "tb", hparams={"lr": 0.001, "algo": "ppo"}),
+        jm.TensorBoardWriter(root / "tb_bands", std_bands=True),
         jm.JsonlWriter(root / "metrics.jsonl"),
         memory,
         jm.ConsoleWriter(console, width=200),
@@ -109,14 +110,19 @@ def written(tmp_path_factory):
                 state = metrics.log(state, {"x": jnp.asarray(vals, jnp.float32)})
             state = metrics.increment(state, "updates", 2)
             state = logger.flush(state, step)
-    acc = ea.EventAccumulator(
-        str(root / "tb"), size_guidance={ea.SCALARS: 0, ea.HISTOGRAMS: 0, ea.TENSORS: 0}
+    acc, bands = (
+        ea.EventAccumulator(
+            str(root / run), size_guidance={ea.SCALARS: 0, ea.HISTOGRAMS: 0, ea.TENSORS: 0}
+        )
+        for run in ("tb", "tb_bands")
     )
     acc.Reload()
+    bands.Reload()
     return {
         "root": root,
         "ref": _reference(periods),
         "acc": acc,
+        "bands": bands,
         "memory": memory,
         "console": console.getvalue(),
     }
@@ -171,8 +177,17 @@ def test_tensorboard_window_histogram_matches_numpy_histogram_of_window(written)
         )
 
 
+def test_tensorboard_writes_std_bands_only_on_request(written):
+    acc, bands = written["acc"], written["bands"]
+    assert not [t for t in acc.Tags()["scalars"] if t.startswith("Margin/")]
+    assert "custom_scalars__config__" not in acc.Tags()["tensors"]
+    banded = sorted(t for t in bands.Tags()["scalars"] if t.startswith("Margin/"))
+    assert banded == ["Margin/Train/x/lower", "Margin/Train/x/upper"]
+    assert set(bands.Tags()["scalars"]) - set(banded) == set(acc.Tags()["scalars"])
+
+
 def test_tensorboard_margin_layout_pairs_each_mean_with_its_std_band(written):
-    acc, ref = written["acc"], written["ref"]
+    acc, ref = written["bands"], written["ref"]
     (event,) = acc.Tensors("custom_scalars__config__")
     layout = layout_pb2.Layout()
     layout.ParseFromString(event.tensor_proto.string_val[0])
@@ -308,7 +323,9 @@ def test_band_tag_colliding_with_a_metric_tag_is_rejected_at_logger_creation(tmp
         terms={"Train/x/lower": lambda s: s}, logged=["x"], episode_prefix="Margin"
     )
     with pytest.raises(ValueError, match="Margin/Train/x/lower"):
-        jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
+        jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path, std_bands=True)])
+    assert os.listdir(tmp_path) == []  # no event file left behind
+    jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)]).close()  # no bands, no collision
 
 
 def test_logger_rejects_objects_that_are_not_writers():
@@ -356,3 +373,6 @@ def test_tensorboard_writer_rejects_bad_options_at_creation(tmp_path):
         jm.TensorBoardWriter(tmp_path, hparams={"opt": object()})
     with pytest.raises(ValueError, match="window_bins"):
         jm.TensorBoardWriter(tmp_path, window_bins=0)
+    with pytest.raises(TypeError, match="std_bands must be a bool"):
+        jm.TensorBoardWriter(tmp_path, std_bands="yes")
+    assert os.listdir(tmp_path) == []  # the event file is created by open(), not here

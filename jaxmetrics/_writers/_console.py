@@ -3,11 +3,10 @@
 from collections.abc import Sequence
 from typing import IO
 
-from .. import _tags
-from .._metrics import TagInfo
-from ._record import Record
-
-_COLUMNS = ("mean", "std", "min", "max", "count")
+from .. import _statistics, _tags
+from .._report import Record
+from .._tags import TagInfo
+from .._validate import is_int
 
 
 def _fmt(v: float | int) -> str:
@@ -18,7 +17,8 @@ class ConsoleWriter:
     """Prints one table per record: a row per metric, columns mean/std/min/max/count,
     every other statistic as `stat=value` in a last column.
 
-    Counters show their value (and `per_sec`), timers their seconds. Colours only on a
+    Counters show their total in the count column (and `per_sec`), timers their seconds
+    in the mean column. Colours only on a
     terminal; plain text in CI logs and files.
 
     Args:
@@ -28,7 +28,7 @@ class ConsoleWriter:
     """
 
     def __init__(self, file: IO[str] | None = None, *, every: int = 1, width: int | None = None):
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
+        if not is_int(every) or every < 1:
             raise ValueError(f"ConsoleWriter: every must be an int >= 1, got {every!r}.")
         from rich.console import Console
 
@@ -42,9 +42,8 @@ class ConsoleWriter:
     def open(self, tags: Sequence[TagInfo]) -> None:
         """Groups the tags into one row per metric (the tag without its stat suffix)."""
         for i in tags:
-            suffix = _tags.STAT_SUFFIX.get(i.stat, "/" + i.stat)
-            row = i.tag[: -len(suffix)] if suffix and i.tag.endswith(suffix) else i.tag
-            self._rows[i.tag] = (row, i.stat)
+            column = _statistics.get(i.stat).column
+            self._rows[i.tag] = (_tags.metric_tag(i), i.stat if column is None else column)
 
     def write(self, record: Record) -> None:
         """Prints the record's scalars as a table."""
@@ -59,12 +58,12 @@ class ConsoleWriter:
             rows.setdefault(row, {})[stat] = _fmt(v)
         table = Table(title=f"step {record.step}", title_justify="left", box=None, pad_edge=False)
         table.add_column("metric", overflow="fold")
-        for c in _COLUMNS:
+        for c in _statistics.COLUMNS:
             table.add_column(c, justify="right")
         table.add_column("more", overflow="fold")
         for row, stats in rows.items():
-            more = " ".join(f"{k}={v}" for k, v in stats.items() if k not in _COLUMNS)
-            table.add_row(row, *(stats.get(c, "") for c in _COLUMNS), more)
+            more = " ".join(f"{k}={v}" for k, v in stats.items() if k not in _statistics.COLUMNS)
+            table.add_row(row, *(stats.get(c, "") for c in _statistics.COLUMNS), more)
         self._console.print(table)
 
     def close(self) -> None:

@@ -5,8 +5,9 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
-from .._metrics import TagInfo
-from ._record import Record, fs_path
+from .._report import Record
+from .._tags import TagInfo
+from ._paths import fs_path
 
 
 def record_to_json(record: Record) -> dict[str, Any]:

@@ -4,8 +4,9 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
-from .._metrics import TagInfo
-from ._record import Record
+from .. import _tags
+from .._report import Record
+from .._tags import TagInfo
 
 
 class MemoryWriter:
@@ -82,8 +83,9 @@ class MemoryWriter:
         for tag in tags:
             s = df[df.tag == tag]
             (line,) = ax.plot(s.step, s.value, label=tag)
-            if band and f"{tag}/std" in known:
-                std = df[df.tag == f"{tag}/std"].set_index("step").value
+            std_tag = _tags.tag("", tag, "std")  # the std of the metric whose mean is `tag`
+            if band and std_tag in known:
+                std = df[df.tag == std_tag].set_index("step").value
                 m = s.set_index("step").value
                 m, std = m.align(std, join="inner")
                 ax.fill_between(m.index, m - std, m + std, color=line.get_color(), alpha=0.2)

@@ -8,8 +8,10 @@ from typing import Any
 import numpy as np
 
 from .. import _tags
-from .._metrics import TagInfo
-from ._record import HistogramData, Record, fs_path
+from .._report import HistogramData, Record
+from .._tags import TagInfo
+from .._validate import is_int
+from ._paths import fs_path
 
 _HPARAM_TYPES = (bool, int, float, str)
 
@@ -41,15 +43,19 @@ class TensorBoardWriter:
       Under/overflow counts are the scalars `<metric>/histogram/underflow|overflow`;
     - `<metric>/window_values`: a `window_bins`-bin histogram of the window contents,
       with their exact min, max, sum and sum of squares;
-    - `Margin/<mean tag>/lower|upper` (mean -/+ std) for every metric that reports both
-      a mean and a std, with a custom-scalars layout (written once) that draws each mean
-      in a mean ± std band ("Custom Scalars" tab);
+    - with `std_bands=True`: `Margin/<mean tag>/lower|upper` (mean -/+ std) for every
+      metric that reports both a mean and a std, with a custom-scalars layout (written
+      once) that draws each mean in a mean ± std band ("Custom Scalars" tab). Off by
+      default: TensorBoard also lists these helper scalars in its Scalars tab, two per
+      metric, under "Margin";
     - on request, an hparams session: `hparams` with the `hparam_metrics` tags (default:
       every mean tag).
 
     Tags are TensorBoard-sanitized (the spec already rejects tags that would collide).
     Events of one record go out as one event, flushed and fsync'ed on every write, so
-    whatever was written survives a crash of the process.
+    whatever was written survives a crash of the process. The event file is created by
+    `open` (when the `Logger` starts, or at a `ProgressFn`'s first call), so a run that
+    fails before leaves none.
 
     Args:
       logdir: the run directory; created if missing. It is checked here: an invalid or
@@ -57,10 +63,11 @@ class TensorBoardWriter:
       hparams: hyperparameters (name -> bool/int/float/str) for the HParams dashboard.
       hparam_metrics: tags the HParams dashboard shows; only with `hparams`.
       window_bins: bins of the window-contents histograms.
+      std_bands: write the mean ± std bands for the Custom Scalars tab.
 
     Raises:
       ValueError: bad `logdir`, `window_bins` or hparams.
-      TypeError: hparam values of another type.
+      TypeError: hparam values of another type, or a `std_bands` that is not a bool.
     """
 
     def __init__(
@@ -70,11 +77,14 @@ class TensorBoardWriter:
         hparams: Mapping[str, bool | int | float | str] | None = None,
         hparam_metrics: Sequence[str] | None = None,
         window_bins: int = 30,
+        std_bands: bool = False,
     ):
-        if isinstance(window_bins, bool) or not isinstance(window_bins, int) or window_bins < 1:
+        if not is_int(window_bins) or window_bins < 1:
             raise ValueError(
                 f"TensorBoardWriter: window_bins must be an int >= 1, got {window_bins!r}."
             )
+        if not isinstance(std_bands, bool):
+            raise TypeError(f"TensorBoardWriter: std_bands must be a bool, got {std_bands!r}.")
         if hparams is not None:
             if not isinstance(hparams, Mapping):
                 raise TypeError(f"TensorBoardWriter: hparams must be a dict, got {hparams!r}.")
@@ -96,41 +106,42 @@ class TensorBoardWriter:
         self._hparams = dict(hparams) if hparams is not None else None
         self._hparam_metrics = None if hparam_metrics is None else list(hparam_metrics)
         self._bins = window_bins
+        self._std_bands = std_bands
 
         from tensorboardX import summary
         from tensorboardX.event_file_writer import EventsWriter
         from tensorboardX.proto.event_pb2 import Event
         from tensorboardX.proto.summary_pb2 import HistogramProto, Summary
 
-        # tensorboardX's SummaryWriter hands events to a background queue that its flush()
-        # does not drain; the synchronous EventsWriter below flushes (and fsyncs) for real.
-        # The suffix keeps two writers opened in the same second from sharing a file name.
-        try:
-            self._events = EventsWriter(
-                os.path.join(self.logdir, "events"), f".{os.getpid()}.{uuid.uuid4().hex[:8]}"
-            )
-        except OSError as e:
-            raise ValueError(
-                f"TensorBoardWriter: cannot create an event file in {self.logdir!r}: {e}."
-            ) from None
-        self._summary, self._Event, self._Hist, self._Summary = (
+        self._summary, self._EventsWriter, self._Event, self._Hist, self._Summary = (
             summary,
+            EventsWriter,
             Event,
             HistogramProto,
             Summary,
         )
+        self._events: Any = None
         self._bands: dict[str, tuple[str, str, str]] = {}
 
     def open(self, tags: Sequence[TagInfo]) -> None:
-        """Writes the mean ± std layout (and the hparams session, if asked for)."""
+        """Creates the event file and writes the mean ± std layout and the hparams
+        session, where asked for.
+
+        Raises:
+          ValueError: the event file cannot be created in `logdir`.
+        """
         by_metric = {(i.group, i.metric): {} for i in tags}
         for i in tags:
             by_metric[(i.group, i.metric)][i.stat] = i.tag
         layout: dict[str, dict[str, list]] = {}
         for (group, _), stats in by_metric.items():
-            if "mean" in stats and "std" in stats:
+            if self._std_bands and "mean" in stats and "std" in stats:
                 mean = stats["mean"]
-                self._bands[mean] = (stats["std"], f"Margin/{mean}/lower", f"Margin/{mean}/upper")
+                self._bands[mean] = (
+                    stats["std"],
+                    _tags.band(mean, "lower"),
+                    _tags.band(mean, "upper"),
+                )
                 category = mean.split("/", 1)[0] if "/" in mean else group
                 layout.setdefault(f"{category} (mean ± std)", {})[_tags.sanitize(mean)] = [
                     "Margin",
@@ -140,13 +151,24 @@ class TensorBoardWriter:
             [(i.tag, f"tag {i.tag!r}") for i in tags]
             + [(t, f"band of {m!r}") for m, b in self._bands.items() for t in b[1:]]
         )
+        # tensorboardX's SummaryWriter hands events to a background queue that its flush()
+        # does not drain; the synchronous EventsWriter below flushes (and fsyncs) for real.
+        # The suffix keeps two writers opened in the same second from sharing a file name.
+        try:
+            self._events = self._EventsWriter(
+                os.path.join(self.logdir, "events"), f".{os.getpid()}.{uuid.uuid4().hex[:8]}"
+            )
+        except OSError as e:
+            raise ValueError(
+                f"TensorBoardWriter: cannot create an event file in {self.logdir!r}: {e}."
+            ) from None
         summaries = []
         if layout:
             summaries.append(self._summary.custom_scalars(layout))
         if self._hparams is not None:
             metrics = self._hparam_metrics
             if metrics is None:
-                metrics = [i.tag for i in tags if i.stat == "mean" and i.group != "counter"]
+                metrics = [i.tag for i in tags if i.stat == "mean"]
             exp, ssi, _ = self._summary.hparams(
                 self._hparams, {_tags.sanitize(t): 0.0 for t in metrics}
             )
@@ -209,7 +231,9 @@ class TensorBoardWriter:
         )
 
     def close(self) -> None:
-        """Ends the hparams session (if any) and closes the event file."""
+        """Ends the hparams session (if any) and closes the event file (if opened)."""
+        if self._events is None:
+            return
         if self._hparams is not None:
             _, _, sei = self._summary.hparams(self._hparams, {})
             self._events.write_event(self._Event(summary=sei))

@@ -7,7 +7,6 @@ by `brax.envs.training.wrap` (VmapWrapper + EpisodeWrapper + AutoResetWrapper), 
 pseudo-random actions drawn in-graph; every variant runs the same rollout.
 """
 
-import contextlib
 from collections.abc import Callable
 from typing import Any
 
@@ -22,12 +21,10 @@ from ._timing import Variant, blocking, compile_jit, measure, tree_bytes
 
 
 def _brax_promotion():
-    # Brax and MJX rely on implicit rank/dtype promotion; keep strict settings (the test
-    # suite's) for our own code only.
-    stack = contextlib.ExitStack()
-    stack.enter_context(jax.numpy_rank_promotion("allow"))
-    stack.enter_context(jax.numpy_dtype_promotion("standard"))
-    return stack
+    # Imported here: the other scenarios of the bench run without Brax installed.
+    from jaxmetrics.brax import default_promotion
+
+    return default_promotion()
 
 
 class Rollout:
@@ -42,16 +39,16 @@ class Rollout:
         metrics: jm.Metrics | None = None,
         sharding: jax.sharding.NamedSharding | None = None,
     ):
-        from brax import envs
-        from brax.envs.wrappers import training
+        from jaxmetrics import brax as jmb  # before Brax: MuJoCo without its warp lines
+
+        from brax import envs  # isort: skip
+        from brax.envs.wrappers import training  # isort: skip
 
         with _brax_promotion():
             base = envs.get_environment(env_name, backend=backend)
             if metrics is None:
                 self.env = training.wrap(base, episode_length=episode_length)
             else:
-                from jaxmetrics import brax as jmb
-
                 self.env = jmb.wrap(base, metrics, episode_length=episode_length)
             keys = jax.random.split(jax.random.PRNGKey(0), num_envs)
             if sharding is not None:  # the env batch follows its keys' layout

@@ -26,7 +26,6 @@ from jax.sharding import PartitionSpec as P
 
 import jaxmetrics as jm
 
-from .._transfer import Packer
 from . import _workload as wl
 from ._hlo import collectives, loop_body_ops
 from ._report import Table
@@ -112,7 +111,7 @@ def sharded(
     )
     f.notes.append(
         "bytes to host: the packed report a Logger.flush copies (O(metrics), whatever the envs); "
-        "compute + copy: jitted compute + pack, then device_get, median."
+        "compute + copy: jitted compute, then device_get of every leaf, median."
     )
     tables = [t, f]
     if processes:
@@ -121,8 +120,7 @@ def sharded(
 
 
 def _flush_cost(spec: jm.Metrics, state: Any, repeats: int) -> list[Any]:
-    packer = Packer(spec.dtype)
-    compute = jax.jit(lambda s: packer.pack(spec.compute(s)))
+    compute = jax.jit(spec.compute)
     jax.device_get(compute(state))
     samples = []
     for _ in range(repeats):

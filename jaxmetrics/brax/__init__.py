@@ -3,9 +3,14 @@ ready-made terms over its `Transition`, and `ProgressFn`, a `progress_fn` for Br
 trainer that writes through jaxmetrics writers.
 
 Wrapper order: `AutoResetWrapper(MetricsWrapper(VmapWrapper(env), metrics, episode_length))`,
-built by `wrap`. Importing this module imports Brax; `import jaxmetrics` does not.
+built by `wrap`. Importing this module imports Brax; `import jaxmetrics` does not. It
+imports MuJoCo without its "Failed to import warp" lines and hides Brax's "not actively
+being maintained" warning, nothing else (`_upstream`); import it before Brax.
 """
 
+from ._upstream import default_promotion as default_promotion  # first: before Brax
+
+# isort: split
 from ._progress import ProgressFn as ProgressFn
 from ._terms import control_effort as control_effort
 from ._terms import episode_length as episode_length
@@ -29,6 +34,7 @@ __all__ = [
     "ProgressFn",
     "Transition",
     "control_effort",
+    "default_promotion",
     "episode_length",
     "episode_return",
     "joint_velocity",

@@ -6,7 +6,6 @@ Brax's `brax.training.agents.ppo.train` reports already-reduced host values to
 the same TensorBoard layout.
 """
 
-import math
 import threading
 import time
 from collections.abc import Mapping, Sequence
@@ -14,8 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from .._metrics import TagInfo
-from .._writers import Record, Writer
+from .. import _tags
+from .._report import RecordBuilder, Writer, check_writers
+from .._tags import TagInfo
 
 # Brax PPO's learner values (brax/training/agents/ppo/losses.py) -> jaxmetrics names.
 _LEARNER_NAMES = {
@@ -69,12 +69,14 @@ class ProgressFn:
 
     Non-finite values are left out of the record (a gap, never a fake 0). Writers are
     opened on the first call, with the tags of that call (the TensorBoard mean ± std
-    layout covers the metrics of that call); they are closed by `close()` (or leaving a
-    `with` block). Calls are serialized (Brax may call from a callback
-    thread).
+    layout covers the metrics of that call), so a run that fails before Brax's first
+    report leaves no event file; they are closed by `close()` (or leaving a `with`
+    block). Calls are serialized (Brax may call from a callback thread).
 
     Brax 0.14.2's `ppo.train` itself calls `jax.device_put_replicated`, which JAX 0.10
-    removed: on that pair of versions it fails before training, whatever `progress_fn`.
+    removed from its public namespace: on that pair of versions it fails before training,
+    whatever `progress_fn`, unless the name is restored first (the README's "Brax's own
+    trainer" shows the three lines).
 
     Args:
       writers: jaxmetrics writers, e.g. `[jaxmetrics.TensorBoardWriter(logdir)]`.
@@ -109,28 +111,20 @@ class ProgressFn:
         counter_prefix: str = "Counters",
         other_prefix: str = "Brax",
     ):
-        if isinstance(writers, Writer) or not isinstance(writers, Sequence):
-            raise TypeError(
-                "ProgressFn: writers must be a list of writers; wrap the writer in [...]."
-            )
-        for w in writers:
-            if not isinstance(w, Writer):
-                raise TypeError(
-                    f"ProgressFn: {w!r} is not a writer: it needs open(tags), write(record) "
-                    "and close() methods (see jaxmetrics.Writer)."
-                )
+        self._writers = check_writers(writers, "ProgressFn")
         prefixes = (eval_prefix, episode_prefix, logged_prefix, counter_prefix, other_prefix)
         for p in prefixes:
             if not isinstance(p, str) or not p:
                 raise ValueError(f"ProgressFn: prefixes must be non-empty strings, got {p!r}.")
         if len(set(prefixes)) != len(prefixes):
             raise ValueError(f"ProgressFn: prefixes must differ, got {prefixes!r}.")
-        self._writers = list(writers)
         self._eval, self._episode, self._logged = eval_prefix, episode_prefix, logged_prefix
-        self._counters, self._other = counter_prefix, other_prefix
+        self._other = other_prefix
+        self._counter = _tags.info(counter_prefix, "counter", "env_steps", "total")
+        self._records = RecordBuilder({})
         self._lock = threading.Lock()
         self._opened = self._closed = False
-        self._prev: tuple[float, int] | None = None
+        self._last_step: int | None = None
 
     def tag_info(self, key: str, metrics: Mapping[str, Any]) -> TagInfo:
         """Where Brax's `key` goes (`metrics` is the call's dict: a `_std` key is a std
@@ -139,26 +133,21 @@ class ProgressFn:
         if space == "eval":
             if name in ("avg_episode_length", "std_episode_length"):
                 stat = "mean" if name.startswith("avg") else "std"
-                return self._info(self._eval, "eval", "episode_length", stat)
+                return _tags.info(self._eval, "eval", "episode_length", stat)
             if name.startswith("episode_"):
                 metric, stat = name[len("episode_") :], "mean"
                 if metric.endswith("_std") and f"eval/episode_{metric[:-4]}" in metrics:
                     metric, stat = metric[:-4], "std"
-                return self._info(self._eval, "eval", _EPISODE_NAMES.get(metric, metric), stat)
+                return _tags.info(self._eval, "eval", _EPISODE_NAMES.get(metric, metric), stat)
         elif space == "training" and name not in ("sps", "walltime"):
-            return self._info(self._logged, "logged", _learner(name) or name, "mean")
+            return _tags.info(self._logged, "logged", _learner(name) or name, "mean")
         elif space == "episode" and name != "sps":
             learner = _learner(name)
             if learner is not None:
-                return self._info(self._logged, "logged", learner, "window_mean")
+                return _tags.info(self._logged, "logged", learner, "window_mean")
             metric = _EPISODE_NAMES.get(name, name)
-            return self._info(self._episode, "episode", metric, "window_mean")
-        return TagInfo(f"{self._other}/{key}", "brax", key, "mean")
-
-    @staticmethod
-    def _info(prefix: str, group: str, metric: str, stat: str) -> TagInfo:
-        suffix = "" if stat == "mean" else f"/{stat}"
-        return TagInfo(f"{prefix}/{metric}{suffix}", group, metric, stat)
+            return _tags.info(self._episode, "episode", metric, "window_mean")
+        return _tags.info(self._other, "brax", key, "mean")
 
     def __call__(self, step: Any, metrics: Mapping[str, Any]) -> None:
         """Writes Brax's `metrics` at `step` (what `ppo.train` passes to `progress_fn`)."""
@@ -166,9 +155,7 @@ class ProgressFn:
             raise TypeError(f"ProgressFn: metrics must be a dict, got {type(metrics).__name__}.")
         step = int(step)
         infos = [self.tag_info(k, metrics) for k in metrics]
-        counter = TagInfo(f"{self._counters}/env_steps", "counter", "env_steps", "count")
-        rate = TagInfo(f"{counter.tag}/per_sec", "counter", "env_steps", "per_sec")
-        scalars: dict[str, float | int] = {counter.tag: step}
+        values: list[tuple[TagInfo, Any]] = [(self._counter, step)]
         for key, info in zip(metrics, infos):
             v = np.asarray(metrics[key])
             if v.size != 1 or not np.issubdtype(v.dtype, np.number):
@@ -176,24 +163,23 @@ class ProgressFn:
                     f"ProgressFn: Brax metric {key!r} is {v.dtype}{list(v.shape)}; expected a "
                     "number."
                 )
-            f = float(v.reshape(()))
-            if info.tag in scalars:
+            if any(info.tag == seen.tag for seen, _ in values):
                 raise ValueError(f"ProgressFn: {key!r} and another key both map to {info.tag!r}.")
-            if math.isfinite(f):
-                scalars[info.tag] = f
+            values.append((info, float(v.reshape(()))))
         with self._lock:
             if self._closed:
                 raise RuntimeError("ProgressFn: called after close(); create a new one.")
-            wall_time = time.time()
-            if self._prev is not None and step > self._prev[1] and wall_time > self._prev[0]:
-                scalars[rate.tag] = (step - self._prev[1]) / (wall_time - self._prev[0])
-            if self._prev is None or step > self._prev[1]:
-                self._prev = (wall_time, step)
+            # Brax calls twice at one step (training windows, then eval and learner values):
+            # the env-step rate spans steps, not calls.
+            new_point = self._last_step is None or step > self._last_step
+            if new_point:
+                self._last_step = step
+            record = self._records(values, step, time.time(), {}, new_point=new_point)
             if not self._opened:
                 self._opened = True
+                rate = _tags.derived(self._counter, "per_sec")
                 for w in self._writers:
-                    w.open((counter, rate, *infos))
-            record = Record(step, wall_time, scalars, {}, {})
+                    w.open((self._counter, rate, *infos))
             for w in self._writers:
                 w.write(record)
 

@@ -11,16 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._spec import DEFAULT_STATS, EPISODE_REDUCTIONS, Stat, Term
+from .. import _reductions
+from .._spec import DEFAULT_STATS, Stat, Term
+from .._validate import is_int
 from ._wrapper import Transition
-
-
-def _check_reduce(reduce: Any, where: str) -> str:
-    if reduce not in EPISODE_REDUCTIONS:
-        raise ValueError(
-            f"{where}: unknown episode reduction {reduce!r}; expected one of {EPISODE_REDUCTIONS}."
-        )
-    return reduce
 
 
 def episode_return(*, stats: Sequence[Stat] = DEFAULT_STATS, nonfinite: str | None = None) -> Term:
@@ -97,10 +91,10 @@ def success_rate(
     """
     if not callable(fn):
         raise TypeError(f"success_rate(fn=...) must be a function of the Transition, got {fn!r}.")
-    if reduce not in ("last", "max", "min", "mean"):
+    if reduce not in _reductions.FLAG_REDUCTIONS:
+        choices = [f"{r!r} ({says})" for r, says in _reductions.FLAG_REDUCTIONS.items()]
         raise ValueError(
-            f"success_rate(reduce={reduce!r}): use 'last' (at episode end), 'max' (at any "
-            "step), 'min' (at every step) or 'mean' (fraction of steps)."
+            f"success_rate(reduce={reduce!r}): use {', '.join(choices[:-1])} or {choices[-1]}."
         )
 
     def flag(t: Transition) -> jax.Array:
@@ -155,14 +149,14 @@ def state_metrics(
     """
     if isinstance(names, str):
         raise TypeError(f"state_metrics: names must be a list or dict, got the string {names!r}.")
-    _check_reduce(reduce, "state_metrics")
+    _reductions.check(reduce, "state_metrics")
     table = dict(names) if isinstance(names, Mapping) else {n: reduce for n in names}
     if not table:
         raise ValueError("state_metrics: give at least one State.metrics name.")
     for name, r in table.items():
         if not isinstance(name, str) or not name:
             raise ValueError(f"state_metrics: names must be non-empty strings, got {name!r}.")
-        _check_reduce(r, f"state_metrics[{name!r}]")
+        _reductions.check(r, f"state_metrics[{name!r}]")
         if per_second and r != "sum":
             raise ValueError(
                 f"state_metrics(per_second=True) divides episode sums by the max episode "
@@ -195,7 +189,7 @@ def state_metrics(
 def _index(indices: Any, where: str) -> Any:
     if indices is None or isinstance(indices, slice):
         return indices
-    if isinstance(indices, (int, np.integer)) and not isinstance(indices, bool):
+    if is_int(indices):
         return np.array([int(indices)])
     idx = np.asarray(indices)
     if idx.ndim != 1 or not np.issubdtype(idx.dtype, np.integer):
@@ -234,7 +228,7 @@ def norm(
         raise TypeError(f"norm(get=...) must be a function of the Transition, got {get!r}.")
     if ord not in (1, 2, np.inf):
         raise ValueError(f"norm(ord={ord!r}): use 1, 2 or numpy.inf.")
-    _check_reduce(reduce, "norm")
+    _reductions.check(reduce, "norm")
     idx = _index(indices, "norm")
 
     def fn(t: Transition) -> jax.Array:

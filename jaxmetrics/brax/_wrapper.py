@@ -15,7 +15,6 @@ Where the MetricsState lives, and why the wrapper sits where it does:
 Hence the order `AutoResetWrapper(MetricsWrapper(VmapWrapper(env)))`, built by `wrap`.
 """
 
-import contextlib
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -27,6 +26,8 @@ from brax.envs.wrappers import training as brax_training
 from .._layout import placed
 from .._metrics import Metrics
 from .._state import MetricsState
+from .._validate import is_int
+from ._upstream import default_promotion
 
 STATE_KEY = "jaxmetrics"
 """The `State.info` key under which the MetricsState of the whole batch is kept."""
@@ -72,14 +73,6 @@ class Transition(NamedTuple):
     episode_length: int
 
 
-@contextlib.contextmanager
-def _brax_promotion():
-    # Brax and MJX internals rely on implicit promotion: run them under JAX's defaults
-    # whatever the user's config (terms still run under the user's).
-    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
-        yield
-
-
 def _strong_types(tree: Any) -> Any:
     # Inner envs often build flags with Python scalars (`jnp.where(c, 1.0, 0.0)`), which
     # are weakly typed in `step` but not in `reset`: a jitted host loop would compile
@@ -91,7 +84,7 @@ def _strong_types(tree: Any) -> Any:
 
 
 def _positive_int(value: Any, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    if not is_int(value) or value < 1:
         raise ValueError(f"MetricsWrapper({name}=...) must be a positive int, got {value!r}.")
     return value
 
@@ -182,7 +175,7 @@ class MetricsWrapper(Wrapper):
         if self.sharding is not None:
             # The whole env batch follows its keys' layout from here on.
             rng = placed(rng, self.sharding)
-        with _brax_promotion():
+        with default_promotion():
             state = self.env.reset(rng)
         done = jnp.asarray(state.done)
         if done.ndim != 1:
@@ -223,7 +216,7 @@ class MetricsWrapper(Wrapper):
             prev, ms = carry
             # Envs mutate the dicts of the state they are given (Brax's ant updates
             # `state.metrics` in place): give them copies so `prev` stays the pre-step state.
-            with _brax_promotion():
+            with default_promotion():
                 nxt = self.env.step(
                     prev.replace(metrics=dict(prev.metrics), info=dict(prev.info)), action
                 )

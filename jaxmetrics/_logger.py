@@ -1,17 +1,20 @@
-"""The host flush: in-graph compute + reset, an async copy, and a writer thread.
+"""The `Logger`: in-graph compute + reset, an async copy, a writer thread, and the errors.
 
 `Logger.flush` dispatches one jitted `compute` + `reset_period` (only the reduced report
 crosses to the host, never O(num_envs)), starts the report's device -> host copy and
 queues it for the writer thread; it returns the reset state without waiting for the
 device or the disk. `Logger.emit` is the same path for training loops inside one `jit`.
+The writer thread turns reports into `Record`s (`_report`) and hands them to the writers;
+what goes wrong there, and the non-finite policy, surface on the caller's thread.
 """
 
 import atexit
 import functools
-import math
 import queue
+import sys
 import threading
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from contextlib import AbstractContextManager
 from typing import Any, NamedTuple
@@ -23,30 +26,15 @@ import numpy as np
 from . import _tags
 from ._emit import InGraphEmit
 from ._layout import mesh_of, placed, replicated
-from ._metrics import Metrics, NonFiniteError, TagInfo
+from ._metrics import Metrics
+from ._report import RecordBuilder, Writer, check_writers, derived_tags
 from ._state import MetricsState
+from ._tags import TagInfo
 from ._timer import Timers
 from ._transfer import Packer
-from ._writers import HistogramData, Record, Writer
+from ._validate import is_int
 
 WritersArg = Sequence[Writer] | Callable[[int], Sequence[Writer]]
-
-
-def _derived_tags(metrics: Metrics, include_running: bool) -> list[TagInfo]:
-    """Tags the logger adds to the spec's: running means, rates, histogram tails."""
-    out = []
-    if include_running:
-        prefix = metrics.prefixes["episode"]
-        for name, spec in metrics.metric_specs.items():
-            if spec.reduce is not None:
-                out.append(TagInfo(_tags.tag(prefix, name, "running"), "episode", name, "running"))
-    for i in metrics.tags:
-        if i.group == "counter":
-            out.append(TagInfo(f"{i.tag}/per_sec", "counter", i.metric, "per_sec"))
-        elif i.stat == "histogram":
-            for end in ("underflow", "overflow"):
-                out.append(TagInfo(f"{i.tag}/{end}", i.group, i.metric, f"histogram/{end}"))
-    return out
 
 
 def _unused(writers: WritersArg, runs: int) -> list[list[Writer]]:
@@ -84,66 +72,25 @@ class _Layout:
         return hash(self._key)
 
 
-class _Check(NamedTuple):
+class NonFiniteError(FloatingPointError):
+    """Raised on the caller's thread for metrics whose nonfinite policy is "raise"."""
+
+
+class _PendingNonFinite(NamedTuple):
     """A report whose non-finite counts the caller's thread has yet to check."""
 
     step: Any  # int, or an int array of shape () or [len(runs)]
-    runs: tuple[int | None, ...]  # None: the only run
+    runs: tuple[int, ...]
     counts: Any  # packed counts, [len(runs), 2, K] (the leading axis may be absent for one)
 
 
-class _RunBook:
-    """Per-run host bookkeeping: turns host reports into `Record`s, in order."""
-
-    def __init__(self, infos: Mapping[str, TagInfo], edges: Mapping[str, np.ndarray]):
-        self._infos, self._edges = infos, edges
-        self._seen_nonzero: set[str] = set()
-        self._prev: tuple[float, dict[str, int]] | None = None
-
-    def _sparse(self, scalars: dict[str, float | int], tag: str, n: int) -> None:
-        # Zero counts of rare events are written only once the event has happened.
-        if n or tag in self._seen_nonzero:
-            self._seen_nonzero.add(tag)
-            scalars[tag] = n
-
-    def record(
-        self, host: Mapping[str, Any], step: int, wall_time: float, timers: Mapping[str, float]
-    ) -> Record:
-        scalars: dict[str, float | int] = {}
-        hists: dict[str, HistogramData] = {}
-        windows: dict[str, np.ndarray] = {}
-        counts: dict[str, int] = {}
-        for tag, v in host.items():
-            info = self._infos.get(tag)
-            stat = info.stat if info is not None else "running"
-            if stat == "histogram":
-                c = np.asarray(v, np.int64)
-                if c.sum() > 0:
-                    hists[tag] = HistogramData(self._edges[tag], c[1:-1], int(c[0]), int(c[-1]))
-                self._sparse(scalars, f"{tag}/underflow", int(c[0]))
-                self._sparse(scalars, f"{tag}/overflow", int(c[-1]))
-            elif stat == "window_values":
-                w = np.asarray(v, np.float64)
-                w = w[np.isfinite(w)]
-                if w.size:
-                    windows[tag] = w
-            elif stat == "nonfinite":
-                self._sparse(scalars, tag, int(v))
-            elif stat == "count":
-                scalars[tag] = int(v)
-                if info is not None and info.group == "counter":
-                    counts[tag] = int(v)
-                    if self._prev is not None and wall_time > self._prev[0]:
-                        prev_time, prev = self._prev
-                        scalars[f"{tag}/per_sec"] = (int(v) - prev[tag]) / (wall_time - prev_time)
-            else:
-                f = float(v)
-                if math.isfinite(f):
-                    scalars[tag] = f
-        scalars.update(timers)
-        if counts:
-            self._prev = (wall_time, counts)
-        return Record(step, wall_time, scalars, hists, windows)
+def _warn_at_caller(message: str) -> None:
+    """A `RuntimeWarning` attributed to the first frame outside this module: the line that
+    called `flush`, `wait` or `close` (or left the `with` block)."""
+    level, frame = 1, sys._getframe(0)
+    while frame is not None and frame.f_code.co_filename == __file__:
+        level, frame = level + 1, frame.f_back
+    warnings.warn(message, RuntimeWarning, stacklevel=level)
 
 
 class Logger(AbstractContextManager):
@@ -175,10 +122,11 @@ class Logger(AbstractContextManager):
     histogram under/overflow counts are written from their first non-zero value on, so
     that healthy runs are not cluttered with rows of zeros.
 
-    Non-finite values (policy "skip" warns, "raise" raises `NonFiniteError`, both naming
-    the metric and the step) surface on the caller's thread at a fixed point: a flush's
-    are checked by the *next* `flush` (after it has queued its own report, so no data is
-    lost) or by `wait()`/`close()`; emitted ones by the next `flush`, `wait()` or
+    Non-finite values (policy "skip" warns with a `RuntimeWarning` attributed to the
+    caller's line, "raise" raises `NonFiniteError`; both name the metric, the run and the
+    step; "propagate" is silent) surface on the caller's thread at a fixed point: a
+    flush's are checked by the *next* `flush` (after it has queued its own report, so no
+    data is lost) or by `wait()`/`close()`; emitted ones by the next `flush`, `wait()` or
     `close()` after the jitted call. Writer errors surface the same way.
 
     Attributes:
@@ -231,36 +179,50 @@ class Logger(AbstractContextManager):
     ):
         if not isinstance(metrics, Metrics):
             raise TypeError(f"Logger: metrics must be a jaxmetrics.Metrics, got {metrics!r}.")
-        if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
+        if not is_int(runs) or runs < 1:
             raise ValueError(f"Logger: runs must be an int >= 1, got {runs!r}.")
-        if isinstance(max_pending, bool) or not isinstance(max_pending, int) or max_pending < 1:
+        if not is_int(max_pending) or max_pending < 1:
             raise ValueError(f"Logger: max_pending must be an int >= 1, got {max_pending!r}.")
         if not isinstance(timer_prefix, str) or not timer_prefix:
             raise ValueError(
                 f"Logger: timer_prefix must be a non-empty string, got {timer_prefix!r}."
             )
         self.metrics = metrics
-        self.runs = runs
-        self.tags: tuple[TagInfo, ...] = metrics.tags + tuple(
-            _derived_tags(metrics, include_running)
+        self.runs = int(runs)
+        running = [
+            _tags.info(metrics.prefixes["episode"], "episode", name, "running")
+            for name, spec in metrics.metric_specs.items()
+            if include_running and spec.reduce is not None
+        ]
+        self.tags: tuple[TagInfo, ...] = (
+            metrics.tags + tuple(running) + tuple(derived_tags(metrics.tags))
         )
-        _tags.check_unique((i.tag, f"{i.group} {i.metric!r} ({i.stat})") for i in self.tags)
+        _tags.check_unique((i.tag, _tags.origin(i)) for i in self.tags)
         self._timer_prefix = timer_prefix
         self._timer_tags: set[str] = set()
         # Under jax.distributed every process runs the same program; process 0 writes.
         self.writes = jax.process_index() == 0
-        self._writers = self._make_writers(writers, runs) if self.writes else _unused(writers, runs)
-        infos = {i.tag: i for i in self.tags}
+        self._writers = (
+            self._make_writers(writers, self.runs) if self.writes else _unused(writers, self.runs)
+        )
+        self._infos = {i.tag: i for i in self.tags}
         edges = {
             i.tag: metrics.histogram_edges(i.tag) for i in metrics.tags if i.stat == "histogram"
         }
-        self._books = [_RunBook(infos, edges) for _ in range(runs)]
+        self._builders = [RecordBuilder(edges) for _ in range(self.runs)]
         self._nonfinite_tags = [i.tag for i in metrics.tags if i.stat == "nonfinite"]
 
-        self._packer = Packer(metrics.dtype)
+        def report(state):
+            return metrics.compute(state, include_running=include_running)
+
+        # The layout of the packed report, from shapes alone: the host side works before
+        # (and without) any trace of the flush.
+        shapes = jax.eval_shape(lambda: report(metrics.init(1)))
+        order = [i.tag for i in self.tags if i.tag in shapes]
+        self._packer = Packer(shapes, order, metrics.dtype)
 
         def compute(state):
-            return self._packer.pack(metrics.compute(state, include_running=include_running))
+            return self._packer.pack(report(state))
 
         def compute_reset(state):
             new = metrics.reset_period(state)
@@ -285,7 +247,7 @@ class Logger(AbstractContextManager):
         self._timers = Timers()
         self._lock = threading.Lock()
         self._errors: list[BaseException] = []
-        self._unchecked: list[_Check] = []
+        self._unchecked: list[_PendingNonFinite] = []
         self._slots = threading.Semaphore(max_pending)
         self._queue: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
         self._closed = False
@@ -306,7 +268,7 @@ class Logger(AbstractContextManager):
     @staticmethod
     def _make_writers(writers: WritersArg, runs: int) -> list[list[Writer]]:
         if callable(writers) and not isinstance(writers, Writer):
-            made: list[list[Writer]] = []
+            made: list[list[Any]] = []
             try:
                 for r in range(runs):
                     made.append(list(writers(r)))
@@ -319,19 +281,13 @@ class Logger(AbstractContextManager):
                 "lambda run: [jm.TensorBoardWriter(f'{root}/seed_{run}')], so that each run "
                 "writes to its own place."
             )
-        elif isinstance(writers, Writer):
-            raise TypeError("Logger: writers must be a list of writers; wrap the writer in [...].")
         else:
-            made = [list(writers)]
-        for ws in made:
-            for w in ws:
-                if not isinstance(w, Writer):
-                    _close_quietly(made)
-                    raise TypeError(
-                        f"Logger: {w!r} is not a writer: it needs open(tags), write(record) "
-                        "and close() methods (see jaxmetrics.Writer)."
-                    )
-        return made
+            made = [writers]
+        try:
+            return [check_writers(ws, "Logger") for ws in made]
+        except TypeError:
+            _close_quietly([ws for ws in made if isinstance(ws, list)])
+            raise
 
     # ------------------------------------------------------------------ host loop
 
@@ -368,16 +324,12 @@ class Logger(AbstractContextManager):
         floats.copy_to_host_async()
         counts.copy_to_host_async()
         self.report_nbytes = floats.nbytes + counts.nbytes
-        wall_time = time.time()
         timers = self._timers.take()
         self._slots.acquire()
-        self._queue.put(
-            functools.partial(self._write_flush, floats, counts, step, wall_time, timers)
-        )
+        self._queue.put(functools.partial(self._write_flush, floats, counts, step, timers))
         earlier = self._take_unchecked()
-        runs = (None,) if self.runs == 1 else tuple(range(self.runs))
         with self._lock:
-            self._unchecked.append(_Check(step, runs, counts))
+            self._unchecked.append(_PendingNonFinite(step, tuple(range(self.runs)), counts))
         self._surface(earlier)
         return state._replace(finished=finished, logged=logged)
 
@@ -390,7 +342,7 @@ class Logger(AbstractContextManager):
         """
         if not isinstance(name, str) or not name:
             raise ValueError(f"Logger.timer: name must be a non-empty string, got {name!r}.")
-        tag = f"{self._timer_prefix}/{name}"
+        tag = _tags.timer(self._timer_prefix, name)
         if tag not in self._timer_tags:
             _tags.check_unique(
                 [(i.tag, f"tag {i.tag!r}") for i in self.tags]
@@ -506,7 +458,7 @@ class Logger(AbstractContextManager):
                         ValueError(f"Logger.emit: run index {r} is outside [0, {self.runs}).")
                     )
                     continue
-                self._unchecked.append(_Check(s, (r,), counts[i]))
+                self._unchecked.append(_PendingNonFinite(s, (r,), counts[i]))
                 host = functools.partial(self._packer.unpack, floats[i], counts[i])
                 self._queue.put(functools.partial(self._write_run, r, host, s, wall_time, {}))
 
@@ -523,12 +475,14 @@ class Logger(AbstractContextManager):
                 with self._lock:
                     self._errors.append(e)
 
-    def _write_flush(
-        self, floats: jax.Array, counts: jax.Array, step: Any, wall_time: float, timers: dict
-    ) -> None:
+    def _write_flush(self, floats: jax.Array, counts: jax.Array, step: Any, timers: dict) -> None:
         try:
             f = np.reshape(np.asarray(floats), (self.runs, -1))
             c = np.reshape(np.asarray(counts), (self.runs, 2, -1))
+            # Stamped once the device has computed the report (the fetches above wait for
+            # it), not when `flush` dispatched it: a host loop runs ahead of the device, so
+            # dispatch times would make the first rates (`/per_sec`) far too high.
+            wall_time = time.time()
             steps = np.broadcast_to(np.asarray(step), (self.runs,))
             for r in range(self.runs):
                 host = functools.partial(self._packer.unpack, f[r], c[r])
@@ -544,7 +498,8 @@ class Logger(AbstractContextManager):
         wall_time: float,
         timers: dict,
     ) -> None:
-        record = self._books[run].record(host(), step, wall_time, timers)
+        values = [(self._infos[tag], v) for tag, v in host().items()]
+        record = self._builders[run](values, step, wall_time, timers)
         for w in self._writers[run]:
             try:
                 w.write(record)
@@ -594,7 +549,7 @@ class Logger(AbstractContextManager):
             )
 
     def _check_step(self, step: Any) -> None:
-        ok = isinstance(step, (int, np.integer)) and not isinstance(step, bool)
+        ok = is_int(step)
         if not ok and hasattr(step, "dtype") and hasattr(step, "shape"):
             ok = jnp.issubdtype(step.dtype, jnp.integer) and tuple(step.shape) in ((), (self.runs,))
         if not ok:
@@ -603,33 +558,38 @@ class Logger(AbstractContextManager):
                 f"({self.runs},)), got {step!r}."
             )
 
-    def _take_unchecked(self) -> list[_Check]:
+    def _take_unchecked(self) -> list[_PendingNonFinite]:
         with self._lock:
             out, self._unchecked = self._unchecked, []
         return out
 
-    def _surface(self, pending: Sequence[_Check]) -> None:
-        """Runs the non-finite checks of earlier reports on the caller's thread and
-        raises what was deferred."""
-        problems: list[str] = []
+    def _surface(self, pending: Sequence[_PendingNonFinite]) -> None:
+        """Applies the non-finite policy to earlier reports on the caller's thread (warns
+        for "skip", raises `NonFiniteError` for "raise") and raises what was deferred."""
+        raising: list[str] = []
         for check in pending:
             n = len(check.runs)
             counts = np.reshape(np.asarray(check.counts), (n, 2, -1))
             steps = np.broadcast_to(np.asarray(check.step), (n,))
-            for i, r in enumerate(check.runs):
+            for i, run in enumerate(check.runs):
                 if not self._packer.any_nonzero(counts[i], self._nonfinite_tags):
                     continue
                 found = self._packer.unpack(None, counts[i], self._nonfinite_tags)
-                where = f"step {int(steps[i])}" + ("" if r is None else f", run {r}")
-                try:
-                    self.metrics.check_nonfinite(found)
-                except NonFiniteError as e:
-                    problems.append(f"{where}: {e}")
+                for info, policy, count in self.metrics.nonfinite(found):
+                    kind = "term" if info.group == "episode" else "logged value"
+                    message = (
+                        f"step {int(steps[i])}, run {run}: {kind} {info.metric!r}: {count} "
+                        f"non-finite value(s) left out ({info.tag})"
+                    )
+                    if policy == "raise":
+                        raising.append(message)
+                    elif policy == "skip":
+                        _warn_at_caller(message)
         with self._lock:
             errors, self._errors = self._errors, []
         if errors:
-            if problems and hasattr(errors[0], "add_note"):
-                errors[0].add_note("Also non-finite values: " + "; ".join(problems))
+            if raising and hasattr(errors[0], "add_note"):
+                errors[0].add_note("Also non-finite values: " + "; ".join(raising))
             raise errors[0]
-        if problems:
-            raise NonFiniteError("; ".join(problems))
+        if raising:
+            raise NonFiniteError("; ".join(raising))

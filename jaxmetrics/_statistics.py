@@ -1,0 +1,108 @@
+"""The registry of statistics: every `TagInfo.stat` the library writes, in report order.
+
+Tag suffixes (`_tags`), the statistics a metric reports (`reported`), how a host record
+holds each value (`_report`) and the console's columns derive from `STATISTICS`; nothing
+else lists statistic names. (`_stream.compute` produces the in-graph values under these
+names; `tests/test_layout.py` checks that the two agree.)
+"""
+
+from typing import TYPE_CHECKING, NamedTuple
+
+if TYPE_CHECKING:
+    from ._spec import StatSpec
+
+
+class Statistic(NamedTuple):
+    """One statistic.
+
+    Attributes:
+      name: `TagInfo.stat`; a template for the percentile family (see `percentile`).
+      suffix: what follows `<prefix>/<metric>` in its tag ("" for the mean).
+      source: what asks for it. "simple": its name among a metric's `stats`; "ema",
+        "window", "percentile", "histogram": the matching `jaxmetrics.ema/window/
+        histogram(...)`; "always": every metric; "running": `include_running`;
+        "counter": every counter; "logger": added by the `Logger` from another tag.
+      host: what a `Record` holds. "float": a float, left out when not finite;
+        "exact": an exact int; "sparse": an exact int written from its first non-zero
+        value on; "histogram": `HistogramData`; "window": the finite window contents.
+      column: the `ConsoleWriter` column it is shown in (None: the last column).
+    """
+
+    name: str
+    suffix: str
+    source: str
+    host: str
+    column: str | None = None
+
+
+_PERCENTILE = "window_p{p:g}"
+
+STATISTICS = (
+    Statistic("mean", "", "simple", "float", "mean"),
+    Statistic("std", "/std", "simple", "float", "std"),
+    Statistic("min", "/min", "simple", "float", "min"),
+    Statistic("max", "/max", "simple", "float", "max"),
+    Statistic("sum", "/sum", "simple", "float"),
+    Statistic("count", "/count", "simple", "exact", "count"),
+    Statistic("ema", "/ema", "ema", "float"),
+    Statistic("window_mean", "/window_mean", "window", "float"),
+    Statistic("window_std", "/window_std", "window", "float"),
+    Statistic("window_min", "/window_min", "window", "float"),
+    Statistic("window_max", "/window_max", "window", "float"),
+    Statistic("window_values", "/window_values", "window", "window"),
+    Statistic(_PERCENTILE, "/" + _PERCENTILE, "percentile", "float"),
+    Statistic("histogram", "/histogram", "histogram", "histogram"),
+    Statistic("nonfinite", "/nonfinite", "always", "sparse"),
+    Statistic("running", "/running", "running", "float"),
+    Statistic("total", "", "counter", "exact", "count"),
+    Statistic("per_sec", "/per_sec", "logger", "float"),
+    Statistic("histogram/underflow", "/histogram/underflow", "logger", "sparse"),
+    Statistic("histogram/overflow", "/histogram/overflow", "logger", "sparse"),
+)
+
+SIMPLE_STATS = tuple(s.name for s in STATISTICS if s.source == "simple")
+"""The statistics named by a plain string in `stats=`."""
+
+COLUMNS = tuple(dict.fromkeys(s.column for s in STATISTICS if s.column is not None))
+"""The console's columns, in order."""
+
+_BY_NAME = {s.name: s for s in STATISTICS}
+_PERCENTILE_PREFIX = _PERCENTILE.split("{", 1)[0]
+
+
+def percentile(p: float) -> str:
+    """The statistic name of window percentile `p`: `window_p50`, `window_p99.9`."""
+    return _PERCENTILE.format(p=p)
+
+
+def get(name: str) -> Statistic:
+    """The registry entry of `name` (a window percentile resolves to its family).
+
+    Raises:
+      KeyError: for a name that is not a statistic.
+    """
+    found = _BY_NAME.get(name)
+    if found is None and name.startswith(_PERCENTILE_PREFIX):
+        return _BY_NAME[_PERCENTILE]._replace(name=name, suffix="/" + name)
+    if found is None:
+        raise KeyError(f"{name!r} is not a jaxmetrics statistic.")
+    return found
+
+
+def reported(stats: "StatSpec") -> list[str]:
+    """The statistics a metric with these report statistics has in `Metrics.compute`,
+    in report order."""
+    wants = {
+        "simple": lambda s: s.name in stats.simple,
+        "ema": lambda s: stats.ema is not None,
+        "window": lambda s: stats.window is not None,
+        "histogram": lambda s: stats.histogram is not None,
+        "always": lambda s: True,
+    }
+    out = []
+    for s in STATISTICS:
+        if s.source == "percentile" and stats.window is not None:
+            out += [percentile(p) for p in stats.window.percentiles]
+        elif s.source in wants and wants[s.source](s):
+            out.append(s.name)
+    return out

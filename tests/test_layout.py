@@ -1,0 +1,162 @@
+"""The package's layout: one owner per concept, and layers that import only downwards.
+
+core (the spec, the state and its in-graph functions, tags, registries) <- host (report ->
+Record, the logger) <- writers <- integrations (jaxmetrics.brax) <- examples. The
+registries of statistics and reductions are the only lists of their names; the in-graph
+modules that use the names (`_stream`, `_episode`) are checked against them here.
+"""
+
+import ast
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmetrics as jm
+import jaxmetrics.brax as jmb
+from jaxmetrics import _episode, _reductions, _statistics, _stream, _tags
+
+PACKAGE = Path(jm.__file__).resolve().parent
+
+CORE = {
+    "_count",
+    "_episode",
+    "_layout",
+    "_metrics",
+    "_numerics",
+    "_reductions",
+    "_spec",
+    "_state",
+    "_statistics",
+    "_stream",
+    "_tags",
+    "_validate",
+    "_wrap_step",
+}
+HOST = {"_emit", "_logger", "_report", "_timer", "_transfer"}
+LAYERS = [CORE, HOST, {"_writers"}, {"brax"}, {"examples", "bench", "__init__"}]
+# What a writer sees (TagInfo, Record, the registries) must not pull in JAX.
+PURE = {"_reductions", "_report", "_spec", "_statistics", "_tags", "_validate", "_writers"}
+
+
+def layer(top: str) -> int:
+    return next(i for i, names in enumerate(LAYERS) if top in names)
+
+
+def imports(path: Path) -> tuple[set[str], set[str]]:
+    """(top-level jaxmetrics modules, other top-level packages) that `path` imports."""
+    rel = path.relative_to(PACKAGE).with_suffix("").parts
+    ours, others = set(), set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                parts = a.name.split(".")
+                if parts[0] == "jaxmetrics":
+                    ours.add(parts[1] if len(parts) > 1 else "__init__")
+                else:
+                    others.add(parts[0])
+        elif isinstance(node, ast.ImportFrom):
+            if node.level == 0:
+                parts = (node.module or "").split(".")
+                if parts[0] != "jaxmetrics":
+                    others.add(parts[0])
+                    continue
+                target = parts[1:]
+            else:
+                target = [*rel[: len(rel) - node.level], *(node.module or "").split(".")]
+                target = [t for t in target if t]
+            if target:
+                ours.add(target[0])
+            else:  # `from . import x` at the top: each name is a module
+                ours.update(a.name for a in node.names)
+    return ours, others
+
+
+MODULES = sorted(p for p in PACKAGE.rglob("*.py"))
+
+
+@pytest.mark.parametrize("path", MODULES, ids=[str(p.relative_to(PACKAGE)) for p in MODULES])
+def test_modules_import_only_their_layer_or_below(path):
+    rel = path.relative_to(PACKAGE).with_suffix("").parts
+    top = rel[0]
+    ours, others = imports(path)
+    for dep in ours - {top}:
+        assert layer(dep) <= layer(top), f"{'/'.join(rel)} (layer {layer(top)}) imports {dep}"
+    if top in PURE:
+        assert ours <= PURE, f"{'/'.join(rel)} imports the JAX core: {ours - PURE}"
+        assert "jax" not in others, f"{'/'.join(rel)} imports jax"
+
+
+def test_progress_fn_builds_records_without_the_jax_core():
+    ours, _ = imports(PACKAGE / "brax" / "_progress.py")
+    assert ours <= PURE, ours - PURE
+
+
+def test_old_module_names_are_gone():
+    for gone in ("_flush.py", "_step.py", "_writers/_record.py"):
+        assert not (PACKAGE / gone).exists(), gone
+
+
+def every_stat_metrics() -> jm.Metrics:
+    stats = (*_statistics.SIMPLE_STATS, jm.ema(0.5), jm.window(3, (10, 99.9)))
+    stats += (jm.histogram(2, (0.0, 1.0)),)
+    return jm.Metrics(
+        terms={"r": jm.Term(lambda x: x, stats=stats)},
+        logged={"loss": jm.Logged(stats=stats)},
+        counters=["updates"],
+    )
+
+
+def test_the_stream_computes_exactly_the_statistics_the_registry_reports():
+    metrics = every_stat_metrics()
+    spec = metrics.metric_specs["loss"]
+    plan = _stream.StreamPlan.build([spec], jnp.float32)
+    (row,) = _stream.compute(plan, _stream.init(plan))
+    assert sorted(row) == sorted(_statistics.reported(spec.stats))
+
+
+def test_every_tag_is_its_metric_tag_plus_the_registry_suffix():
+    metrics = every_stat_metrics()
+    with jm.Logger(metrics, [], include_running=True) as logger:
+        tags = logger.tags
+    stats = {i.stat for i in tags}
+    assert {"total", "per_sec", "running", "window_p10", "window_p99.9"} <= stats
+    assert "histogram/underflow" in stats
+    prefixes = {"episode": "Episode_Metrics", "logged": "Train", "counter": "Counters"}
+    for i in tags:
+        assert i.tag == _tags.tag(prefixes[i.group], i.metric, i.stat)
+        assert _tags.metric_tag(i) == f"{prefixes[i.group]}/{i.metric}"
+    counters = [i for i in tags if i.group == "counter"]
+    assert {i.stat for i in counters} == {"total", "per_sec"}
+
+
+def test_console_columns_and_simple_stats_come_from_the_registry():
+    assert _statistics.COLUMNS == ("mean", "std", "min", "max", "count")
+    assert _statistics.SIMPLE_STATS == ("mean", "std", "min", "max", "sum", "count")
+    with pytest.raises(KeyError, match="'median' is not a jaxmetrics statistic"):
+        _statistics.get("median")
+
+
+def test_reductions_registry_matches_the_episode_blocks_and_the_helpers():
+    assert sorted(_reductions.NAMES) == sorted(_episode.ORDER)
+    for r in _reductions.NAMES:
+        jm.Metrics(terms={"x": jm.Term(lambda s: s, reduce=r)})
+    flags = [r for r in _reductions.NAMES if r in _reductions.FLAG_REDUCTIONS]
+    assert flags == ["mean", "max", "min", "last"]
+    for r in _reductions.NAMES:
+        if r in flags:
+            assert jmb.success_rate(lambda t: t.done, reduce=r).reduce == r
+        else:
+            with pytest.raises(ValueError, match=r"'last' \(at episode end\)"):
+                jmb.success_rate(lambda t: t.done, reduce=r)
+
+
+def test_validation_helper_refuses_bools_and_accepts_numpy_ints():
+    from jaxmetrics._validate import is_int, is_number
+
+    assert [is_int(v) for v in (3, np.int64(3), True, 3.0, "3")] == [1, 1, 0, 0, 0]
+    assert [is_number(v) for v in (3, 2.5, np.float32(2.5), False, None)] == [1, 1, 1, 0, 0]
+    assert jm.window(np.int64(4)).size == 4 and type(jm.window(np.int64(4)).size) is int
+    with pytest.raises(ValueError, match="window size must be a positive int"):
+        jm.window(True)
