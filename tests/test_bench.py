@@ -179,6 +179,7 @@ def test_unknown_names_are_refused(capsys, flag):
     assert f"unknown {flag[2:]} " in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_sharded_rows_count_the_collectives_of_each_layout(result):
     doc, _, _ = result
     sc = doc["scenarios"]

@@ -9,6 +9,7 @@ import sys
 
 import jax
 import numpy as np
+import pytest
 from multihost_spec import METRICS, NUM_ENVS, rollout_data
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -35,6 +36,7 @@ def single_process_report():
     return METRICS.to_host(METRICS.compute(state))
 
 
+@pytest.mark.slow
 def test_two_processes_report_what_one_process_reports_and_only_process_0_writes(tmp_path):
     port = free_port()
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONPATH=os.pathsep.join(sys.path))

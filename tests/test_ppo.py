@@ -246,6 +246,7 @@ def test_bad_run_arguments_fail_before_any_compile(tmp_path):
         ppo.train(CONFIG, str(tmp_path), iterations=CONFIG.num_iterations + 1)
 
 
+@pytest.mark.slow
 def test_devices_split_the_envs_and_the_rollout_loop_stays_shard_local(tmp_path):
     # Before the first update both runs roll out the same policy on the same envs: the
     # first record's episode metrics agree; the 2-device rollout loop holds no collective
