@@ -127,27 +127,35 @@ def run_jitted(policy, xs, dones, flushes):
     return jax.device_get(out)
 
 
-def check_rollout(policy, xs, dones, flushes):
-    m = METRICS[policy]
-    reports = run_jitted(policy, xs, dones, flushes)
+def assert_reports_follow_reference(metrics, reports, xs, dones, flushes, reductions, skip=True):
+    """Reports after every step (stacked on a leading axis) against the float64 reference
+    fed the same rollout; `xs[t, k]` feeds term `r_<reductions[k]>`."""
+    steps, num_envs = dones.shape
     ref = RefEpisodes(
-        E,
-        {f"r_{r}": r for r in REDUCTIONS},
-        skip=policy != "propagate",
+        num_envs,
+        {f"r_{r}": r for r in reductions},
+        skip=skip,
         ema_coeff=EMA_C,
         window=WINDOW,
         percentiles=PCTS,
         hist=HIST,
     )
-    for t in range(T):
-        ref.step({f"r_{r}": xs[t, k] for k, r in enumerate(REDUCTIONS)}, dones[t])
-        host = m.to_host(_slice(reports, t))
+    for t in range(steps):
+        ref.step({f"r_{r}": xs[t, k] for k, r in enumerate(reductions)}, dones[t])
+        host = metrics.to_host(_slice(reports, t))
         for name, stream in ref.streams.items():
-            compare(m, host, stream.report(), "Episode_Metrics", name, policy == "propagate")
+            compare(metrics, host, stream.report(), "Episode_Metrics", name, not skip)
         assert host["Counters/episodes"] == int(dones[: t + 1].sum())
-        assert host["Counters/env_steps"] == (t + 1) * E
+        assert host["Counters/env_steps"] == (t + 1) * num_envs
         if flushes[t]:
             ref.reset_period()
+
+
+def check_rollout(policy, xs, dones, flushes):
+    reports = run_jitted(policy, xs, dones, flushes)
+    assert_reports_follow_reference(
+        METRICS[policy], reports, xs, dones, flushes, REDUCTIONS, skip=policy != "propagate"
+    )
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])

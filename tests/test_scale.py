@@ -14,14 +14,13 @@ from hypothesis import strategies as st
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 from reference import SIMPLE_STATS, RefEpisodes
-from test_core_reductions import compare
+from test_core_reductions import EMA_C, HIST, PCTS, WINDOW, assert_reports_follow_reference
 
 import jaxmetrics as jm
 from jaxmetrics.bench._hlo import collectives, loop_body_ops
 
-E, T = 8, 10  # 8 envs finishing at once overflow the window of 3 (and any shard's share)
+E, T = 8, 10  # 8 envs finishing at once overflow the window (and any shard's share)
 REDUCTIONS = ("mean", "sum", "max", "std")
-EMA_C, WINDOW, PCTS, HIST = 0.3, 3, (0.0, 50.0, 90.0), (6, -40.0, 40.0)
 STATS = (*SIMPLE_STATS, jm.ema(EMA_C), jm.window(WINDOW, PCTS), jm.histogram(HIST[0], HIST[1:]))
 METRICS = jm.Metrics(
     terms={
@@ -111,25 +110,7 @@ def rollouts(draw):
 def test_sharded_reports_match_the_float64_reference_after_every_step(layout, data):
     xs, dones, flushes = data
     reports = sharded_reports(layout, xs, dones, flushes)
-    ref = RefEpisodes(
-        E,
-        {f"r_{r}": r for r in REDUCTIONS},
-        ema_coeff=EMA_C,
-        window=WINDOW,
-        percentiles=PCTS,
-        hist=HIST,
-    )
-    for t in range(T):
-        ref.step({f"r_{r}": xs[t, k] for k, r in enumerate(REDUCTIONS)}, dones[t])
-        host = METRICS.to_host(
-            {k: jax.tree.map(lambda a, t=t: a[t], v) for k, v in reports.items()}
-        )
-        for name, stream in ref.streams.items():
-            compare(METRICS, host, stream.report(), "Episode_Metrics", name)
-        assert host["Counters/episodes"] == int(dones[: t + 1].sum())
-        assert host["Counters/env_steps"] == (t + 1) * E
-        if flushes[t]:
-            ref.reset_period()
+    assert_reports_follow_reference(METRICS, reports, xs, dones, flushes, REDUCTIONS)
 
 
 def long_rollout(seed, steps, num_envs, p_done):
