@@ -245,8 +245,8 @@ class Metrics:
           >>> from jax.sharding import NamedSharding, PartitionSpec as P
           >>> mesh = jax.make_mesh((1,), ("env",), devices=jax.devices()[:1])
           >>> m = jm.Metrics(terms={"r": jm.Term(lambda r: r)})
-          >>> m.state_sharding(NamedSharding(mesh, P("env"))).running.steps.spec
-          PartitionSpec(None, 'env')
+          >>> tuple(m.state_sharding(NamedSharding(mesh, P("env"))).running.steps.spec)
+          (None, 'env')
         """
         if not isinstance(sharding, jax.sharding.NamedSharding):
             raise TypeError(

@@ -12,22 +12,22 @@ import os
 import sys
 
 import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
 
-jax.config.update("jax_num_cpu_devices", 2)
-jax.config.update("jax_cpu_collectives_implementation", "gloo")
-
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-from jax.sharding import NamedSharding  # noqa: E402
-from jax.sharding import PartitionSpec as P  # noqa: E402
+import jaxmetrics as jm
 
 sys.path.insert(0, os.path.dirname(__file__))
 from multihost_spec import METRICS, NUM_ENVS, rollout_data  # noqa: E402
 
-import jaxmetrics as jm  # noqa: E402
-
 
 def main(pid: int, port: int, out: str) -> None:
+    # Set before JAX starts its backend; only when run as a worker (pytest's doctest
+    # collection imports this module too and must not change the suite's devices).
+    jax.config.update("jax_num_cpu_devices", 2)
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(f"localhost:{port}", num_processes=2, process_id=pid)
     assert jax.device_count() == 4 and jax.local_device_count() == 2
     mesh = jax.make_mesh((4,), ("env",), axis_types=(jax.sharding.AxisType.Auto,))
