@@ -383,17 +383,23 @@ def reset_period(plan: StreamPlan, s: StreamState) -> StreamState:
 _UINT32_MAX = np.uint32(np.iinfo(np.uint32).max)
 
 
+def _rotated(r: Ring) -> tuple[jax.Array, jax.Array]:
+    """Values and stamps rotated so that position j holds arrival order j (oldest first,
+    right-aligned), over any leading axes."""
+    n = r.buf.shape[-1]
+    if n == 0:
+        return r.buf, r.stamp
+    j = jnp.arange(n, dtype=jnp.int32).reshape((1,) * r.pos.ndim + (n,))
+    slot = (r.pos[..., None] + j) % n
+    return jnp.take_along_axis(r.buf, slot, axis=-1), jnp.take_along_axis(r.stamp, slot, axis=-1)
+
+
 def _ordered(w: Ring, steps: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Ring contents right-aligned in arrival order (oldest first): values, their ages
     in arrival steps (`steps - stamp`), and validity."""
-    n = w.buf.shape[1]
-    if n == 0:
-        return w.buf, w.stamp, jnp.zeros(w.buf.shape, jnp.bool_)
-    j = jnp.arange(n, dtype=jnp.int32)[None, :]
-    slot = (w.pos[:, None] + j) % n
-    vals = jnp.take_along_axis(w.buf, slot, axis=1)
-    age = steps - jnp.take_along_axis(w.stamp, slot, axis=1)
-    return vals, age, j >= (n - w.filled)[:, None]
+    vals, stamp = _rotated(w)
+    j = jnp.arange(w.buf.shape[1], dtype=jnp.int32)[None, :]
+    return vals, steps - stamp, j >= (w.buf.shape[1] - w.filled)[:, None]
 
 
 def _union(wa: Ring, sa: jax.Array, wb: Ring, sb: jax.Array):
@@ -527,15 +533,6 @@ def pad_ema_history(s: StreamState, size: int) -> StreamState:
         return Ring(pad(vals), pad(stamp), jnp.zeros_like(r.pos), r.filled)
 
     return s._replace(ema_rings=tuple(widen(r) for r in s.ema_rings))
-
-
-def _rotated(r: Ring) -> tuple[jax.Array, jax.Array]:
-    n = r.buf.shape[-1]
-    if n == 0:
-        return r.buf, r.stamp
-    j = jnp.arange(n, dtype=jnp.int32)
-    slot = (r.pos[..., None] + j) % n
-    return jnp.take_along_axis(r.buf, slot, axis=-1), jnp.take_along_axis(r.stamp, slot, axis=-1)
 
 
 def _percentiles(sorted_vals: jax.Array, filled: jax.Array, ps: tuple[float, ...], dt):
