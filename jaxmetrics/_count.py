@@ -17,7 +17,8 @@ _TWO_32 = 4294967296.0
 
 
 class Count(NamedTuple):
-    """An exact non-negative count, elementwise over any shape.
+    """An exact count, elementwise over any shape (counts are non-negative; a counter may
+    be decremented, see `add_at`).
 
     Attributes:
       hi: high 32 bits, dtype uint32.
@@ -40,6 +41,21 @@ def add(count: Count, inc: jax.Array) -> Count:
     return Count(count.hi + carry, lo)
 
 
+def add_at(count: Count, index: int, inc: jax.Array) -> Count:
+    """Adds a scalar integer `inc` to element `index` of a `[n]` count, exactly modulo
+    2^64: a signed `inc` is sign-extended, so a negative one subtracts (and `to_int`
+    reads a count that went below zero as negative)."""
+    inc = jnp.asarray(inc)
+    neg = (inc < 0) if jnp.issubdtype(inc.dtype, jnp.signedinteger) else jnp.bool_(False)
+    word = jnp.zeros(count.lo.shape, jnp.uint32).at[index].set(inc.astype(jnp.uint32))
+    high = (
+        jnp.zeros(count.hi.shape, jnp.uint32)
+        .at[index]
+        .set(jnp.where(neg, jnp.uint32(0xFFFFFFFF), jnp.uint32(0)))
+    )
+    return merge(count, Count(high, word))
+
+
 def merge(a: Count, b: Count) -> Count:
     """Exact sum of two counts."""
     lo = a.lo + b.lo
@@ -57,13 +73,14 @@ def is_zero(count: Count) -> jax.Array:
 
 
 def to_int(count: Count) -> int | np.ndarray:
-    """Host side: the exact count as a Python int (scalar) or an int64/object numpy array."""
+    """Host side: the exact count as a Python int (scalar) or an int64 numpy array; the
+    64 bits are read as a signed integer (a counter decremented below zero is negative)."""
     hi = np.asarray(count.hi).astype(np.uint64)
     lo = np.asarray(count.lo).astype(np.uint64)
-    exact = (hi << np.uint64(32)) | lo
+    exact = ((hi << np.uint64(32)) | lo).astype(np.int64)
     if exact.ndim == 0:
         return int(exact)
-    return exact.astype(np.int64)
+    return exact
 
 
 def total(count: Count) -> Count:

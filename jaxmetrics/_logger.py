@@ -579,7 +579,7 @@ class Logger(AbstractContextManager):
                     kind = "term" if info.group == "episode" else "logged value"
                     message = (
                         f"step {int(steps[i])}, run {run}: {kind} {info.metric!r}: {count} "
-                        f"non-finite value(s) left out ({info.tag})"
+                        f"non-finite value(s) left out or statistic(s) overflowed ({info.tag})"
                     )
                     if policy == "raise":
                         raising.append(message)

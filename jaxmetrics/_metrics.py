@@ -1,5 +1,6 @@
 """The `Metrics` spec: static configuration plus the pure functions over `MetricsState`."""
 
+import hashlib
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -11,7 +12,7 @@ from . import _count, _episode, _reductions, _statistics, _stream, _tags
 from ._count import Count
 from ._layout import env_layout, like
 from ._spec import Logged, MetricSpec, Term, check_name, check_policy, parse_stats
-from ._state import MetricsState
+from ._state import MetricsState, spec_id
 from ._tags import TagInfo
 
 BUILTIN_COUNTERS = ("env_steps", "episodes")
@@ -21,6 +22,58 @@ def _is_numeric(dtype) -> bool:
     return jnp.issubdtype(dtype, jnp.bool_) or (
         jnp.issubdtype(dtype, jnp.number) and not jnp.issubdtype(dtype, jnp.complexfloating)
     )
+
+
+def _as_array(v: Any, what: str) -> jax.Array:
+    """A term's or logged value as a JAX array of a numeric dtype, or an error naming it
+    (`what`, e.g. "term 'x'").
+
+    Host integers wider than JAX's default int32 (numpy int64, Python ints past 2^31)
+    become float64 on the host first: JAX would wrap them (3_000_000_000 ->
+    -1294967296).
+    """
+    fix = "give float, int or bool values"
+    if v is None:
+        raise TypeError(f"{what}: got None; {fix}.")
+    if not isinstance(v, jax.Array | jax.core.Tracer):
+        try:
+            host = np.asarray(v)
+        except (TypeError, ValueError) as e:
+            raise TypeError(
+                f"{what}: got a {type(v).__name__}, not an array ({e}); {fix}."
+            ) from None
+        if host.dtype.kind in "USVMm":
+            raise TypeError(f"{what}: got {v!r} (numpy dtype {host.dtype}); {fix}.")
+        if host.dtype.kind in "iuO" and not jax.config.jax_enable_x64:
+            try:
+                host = host.astype(np.float64)
+            except (TypeError, ValueError):
+                raise TypeError(f"{what}: got {type(v).__name__} of non-numbers; {fix}.") from None
+        v = host
+    try:
+        a = jnp.asarray(v)
+    except TypeError as e:
+        raise TypeError(f"{what}: not a numeric array ({e}); {fix}.") from None
+    if not _is_numeric(a.dtype):
+        raise TypeError(f"{what}: got dtype {a.dtype}; {fix}.")
+    return a
+
+
+def _count_overflow(row: dict[str, Any]) -> dict[str, Any]:
+    """Adds to a row's `nonfinite` count the statistics that overflowed the dtype: a
+    period statistic that is not finite although the period has values (all finite: the
+    others were left out), or an EMA or window statistic that is infinite (values near
+    float32's limit: their sum is inf, their mean NaN). Such a statistic is not written,
+    so the count is what makes the loss visible (warned about or raised at flush)."""
+    has = ~_count.is_zero(row["count"])
+    bad = [has & ~jnp.isfinite(row[k]) for k in ("mean", "std", "sum")]
+    bad += [
+        jnp.isinf(v)
+        for k, v in row.items()
+        if (k == "ema" or k.startswith("window_")) and k != "window_values"
+    ]
+    n = jnp.sum(jnp.stack(bad), dtype=jnp.uint32)
+    return {**row, "nonfinite": _count.merge(row["nonfinite"], Count(jnp.uint32(0), n))}
 
 
 def _flatten_terms(terms: Mapping[str, Any], policy: str) -> tuple[list[Term], list[MetricSpec]]:
@@ -108,7 +161,9 @@ class Metrics:
       episode_prefix: tag prefix of episode metrics.
       logged_prefix: tag prefix of logged values.
       counter_prefix: tag prefix of counters.
-      dtype: float dtype of the state.
+      dtype: float dtype of the state and its statistics: float32 (default) or float64
+        (with `jax_enable_x64`). Terms and logged values may be of any float, int or bool
+        dtype; they are converted.
 
     Examples:
       >>> import jax, jax.numpy as jnp, jaxmetrics as jm
@@ -137,6 +192,13 @@ class Metrics:
         dt = jnp.dtype(dtype)
         if not jnp.issubdtype(dt, jnp.floating):
             raise TypeError(f"Metrics(dtype=...) must be a float dtype, got {dt}.")
+        if jnp.finfo(dt).bits < 32:
+            raise ValueError(
+                f"Metrics(dtype={dt}): statistics kept in {dt} are wrong past a few hundred "
+                "values (in bfloat16 the mean of 1..1000 comes out as 256; in float16 the "
+                "sum overflows at 65504). Use float32 (the default) or float64; terms may "
+                f"still return {dt} values."
+            )
         self._terms, ep_specs = _flatten_terms(terms or {}, nonfinite)
         lg_specs = _flatten_logged(logged or {}, nonfinite)
         if isinstance(counters, str):
@@ -175,6 +237,8 @@ class Metrics:
             infos.append(_tags.info(counter_prefix, "counter", c, "total"))
         _tags.check_unique((i.tag, _tags.origin(i)) for i in infos)
         self.tags: tuple[TagInfo, ...] = tuple(infos)
+        config = (self._ep_defined, lg_specs, self.counter_names, self.prefixes, counter_prefix)
+        self._spec = spec_id(hashlib.sha256(repr((config, dt.name)).encode()).hexdigest())
 
     # ------------------------------------------------------------------ static views
 
@@ -276,6 +340,7 @@ class Metrics:
             ended=_count.zeros((shards,)) if has_ep else None,
             logged=_stream.init(self._lg_plan) if self._lg_plan else None,
             counters=_count.zeros((n_counters,)) if n_counters else None,
+            spec=self._spec,
         )
 
     def _fresh_layout(self, running: Any, per_shard: Any, replicated: Any) -> MetricsState:
@@ -293,6 +358,7 @@ class Metrics:
             ended=fill(shapes.ended, per_shard) if has_ep else None,
             logged=fill(shapes.logged, replicated) if self._lg_plan else None,
             counters=fill(shapes.counters, replicated) if shapes.counters is not None else None,
+            spec=self._spec,
         )
 
     def empty(self) -> MetricsState:
@@ -305,16 +371,12 @@ class Metrics:
                 f"{fn}: expected a MetricsState from this spec's init(), got "
                 f"{type(state).__name__}."
             )
-        ok = (state.running is None) == (self._ep_plan is None)
-        ok &= (state.logged is None) == (self._lg_plan is None)
-        if ok and state.running is not None:
-            ok = state.running.steps.shape[-2] == self._episode_plan.rows
-        if ok and state.logged is not None and self._lg_plan is not None:
-            ok = state.logged.mean.shape[-1] == len(self._lg_plan.rows)
-        if not ok:
+        if type(state.spec) is not type(self._spec):
             raise ValueError(
-                f"{fn}: this state was built by a different Metrics spec; call init() on "
-                "the spec that updates it."
+                f"{fn}: this state was built by a different Metrics spec (other terms, "
+                "logged values, counters, statistics, prefixes or dtype). Call init() on the "
+                "spec that updates it; to restore a checkpoint, build the spec exactly as "
+                "the one that saved it."
             )
         return state
 
@@ -323,6 +385,11 @@ class Metrics:
         for name, term in zip(self._term_names(), self._terms):
             out = term.fn(step_input, **term.params)
             if term.outputs is None:
+                if isinstance(out, Mapping):
+                    raise TypeError(
+                        f"term {name!r} returned a dict with keys {sorted(out)} but declares "
+                        f"no outputs; declare them: Term(fn, outputs={sorted(out)!r})."
+                    )
                 values[name] = self._check_value(out, name, num_envs)
                 continue
             if not isinstance(out, Mapping):
@@ -347,18 +414,7 @@ class Metrics:
         return seen
 
     def _check_value(self, v: Any, name: str, num_envs: int) -> jax.Array:
-        try:
-            a = jnp.asarray(v)
-        except TypeError as e:
-            raise TypeError(
-                f"term {name!r} returned {type(v).__name__}, not an array: {e}. Return a "
-                f"float/int/bool array of shape (num_envs,)=({num_envs},)."
-            ) from None
-        if not _is_numeric(a.dtype):
-            raise TypeError(
-                f"term {name!r} returned dtype {a.dtype}; terms must return float, int or "
-                "bool values."
-            )
+        a = _as_array(v, f"term {name!r}")
         if a.shape != (num_envs,):
             if a.ndim == 0:
                 fix = "it returned a scalar; broadcast it with jnp.full((num_envs,), value)"
@@ -380,7 +436,9 @@ class Metrics:
         Args:
           state: the current state.
           step_input: anything the term functions take (e.g. a Brax `State`).
-          done: `[num_envs]` bool (or 0/1): whether each env's episode ends on this step.
+          done: `[num_envs]` bool (or integer, non-zero meaning done): whether each env's
+            episode ends on this step. Floats are refused: Brax's `State.done` is a
+            float32 0.0/1.0, pass `state.done.astype(bool)`.
             The step is part of the episode it ends.
 
         Returns:
@@ -390,13 +448,24 @@ class Metrics:
         if state.running is None:
             return state
         num_envs = state.running.steps.shape[-1]
-        done = jnp.asarray(done)
-        if done.shape != (num_envs,) or not _is_numeric(done.dtype):
+        done = _as_array(done, "update: done")
+        if done.shape != (num_envs,):
             raise ValueError(
-                f"done must be a bool array of shape (num_envs,)=({num_envs},), got "
+                f"update: done must be a bool array of shape (num_envs,)=({num_envs},), got "
                 f"{done.dtype}{list(done.shape)}."
             )
+        if jnp.issubdtype(done.dtype, jnp.floating):
+            raise TypeError(
+                f"update: done has dtype {done.dtype}; pass a bool array. A float done (0.1, "
+                "NaN, -1) has no single meaning; Brax's State.done is 0.0/1.0: pass "
+                "state.done.astype(bool)."
+            )
         shards = state.ended.hi.shape[0]  # type: ignore[union-attr]
+        if num_envs == 0:
+            raise ValueError(
+                "update: this state has no envs: init(0) and empty() give the identity of "
+                "merge, which nothing can be folded into. Use init(num_envs)."
+            )
         if shards == 0 or num_envs % shards:
             raise ValueError(
                 f"update: this state splits {num_envs} envs into {shards} shards, which is not "
@@ -466,17 +535,14 @@ class Metrics:
                 f"log: unknown logged names {unknown}; declare them in "
                 f"Metrics(logged=...). Known: {sorted(self._lg_index)}."
             )
-        if not values:
-            return state
-        assert self._lg_plan is not None and state.logged is not None
         flat = {}
         for name, v in values.items():
-            a = jnp.asarray(v)
-            if not _is_numeric(a.dtype):
-                raise TypeError(
-                    f"log: {name!r} has dtype {a.dtype}; log float, int or bool values."
-                )
-            flat[name] = a.reshape(-1).astype(self.dtype)
+            a = _as_array(v, f"log: {name!r}")
+            if a.size:  # an empty array logs nothing
+                flat[name] = a.reshape(-1).astype(self.dtype)
+        if not flat:
+            return state
+        assert self._lg_plan is not None and state.logged is not None
         width = max(a.shape[0] for a in flat.values())
         rows = len(self._lg_plan.rows)
         v = jnp.zeros((rows, width), self.dtype)
@@ -492,7 +558,8 @@ class Metrics:
         return state._replace(logged=logged)
 
     def increment(self, state: MetricsState, name: str, by: Any = 1) -> MetricsState:
-        """Adds `by` (a non-negative int below 2^32) to the lifetime counter `name`."""
+        """Adds `by` (a scalar int; a Python int in [-2^31, 2^32)) to the lifetime counter
+        `name`, exactly. A negative `by` subtracts."""
         state = self._check_state(state, "increment")
         if name not in self.counter_names:
             raise ValueError(
@@ -501,9 +568,10 @@ class Metrics:
             )
         assert state.counters is not None
         if isinstance(by, (int, np.integer)) and not isinstance(by, bool):
-            if not 0 <= by < 2**32:
-                raise ValueError(f"increment: `by` must be in [0, 2^32), got {by}.")
-            by = np.uint32(by)  # a Python int >= 2^31 does not fit the default int32
+            if not -(2**31) <= by < 2**32:
+                raise ValueError(f"increment: `by` must be in [-2^31, 2^32), got {by}.")
+            # A Python int >= 2^31 does not fit the default int32.
+            by = np.uint32(by) if by >= 0 else np.int32(by)
         by = jnp.asarray(by)
         if not jnp.issubdtype(by.dtype, jnp.integer) or by.shape != ():
             raise TypeError(
@@ -511,9 +579,8 @@ class Metrics:
             )
         if name == "episodes":
             raise ValueError("increment: 'episodes' is counted by update from done.")
-        inc = jnp.zeros((len(self._stored_counters),), jnp.uint32)
-        inc = inc.at[self._stored_counters.index(name)].set(by.astype(jnp.uint32))
-        return state._replace(counters=_count.add(state.counters, inc))
+        j = self._stored_counters.index(name)
+        return state._replace(counters=_count.add_at(state.counters, j, by))
 
     def reset_period(self, state: MetricsState) -> MetricsState:
         """Starts a new flush period: period statistics clear; windows, EMA, counters and
@@ -555,6 +622,7 @@ class Metrics:
             if self._lg_plan is None
             else _stream.merge(self._lg_plan, a.logged, b.logged),
             counters=None if a.counters is None else _count.merge(a.counters, b.counters),
+            spec=self._spec,
         )
 
     def _merge_shards(self, a: MetricsState, b: MetricsState) -> tuple[Any, Count]:
@@ -603,7 +671,10 @@ class Metrics:
         ):
             if plan is None:
                 continue
-            rows = _stream.compute(plan, st)
+            rows = [
+                row if spec.nonfinite == "propagate" else _count_overflow(row)
+                for spec, row in zip(plan.rows, _stream.compute(plan, st))
+            ]
             for i, spec in enumerate(plan.rows):
                 for stat in _statistics.reported(spec.stats):
                     out[_tags.tag(self.prefixes[group], spec.name, stat)] = rows[i][stat]

@@ -1,5 +1,7 @@
 """The MetricsState pytree: everything a `Metrics` spec accumulates, as fixed-shape arrays."""
 
+import collections
+import functools
 from typing import NamedTuple
 
 from ._count import Count
@@ -21,3 +23,20 @@ class MetricsState(NamedTuple):
     ended: Count | None  # [shards] episodes ended (done flags) per shard, lifetime
     logged: StreamState | None  # report statistics over logged values
     counters: Count | None  # [C] lifetime counters, "episodes" excepted (see `ended`)
+    spec: tuple  # the spec's identity, in the tree structure only (see `spec_id`)
+
+
+@functools.cache
+def spec_id(fingerprint: str) -> tuple:
+    """The identity of the spec with this configuration fingerprint: an instance of a
+    field-less namedtuple type made for it.
+
+    It holds no leaves, so it costs nothing and is carried wherever the tree structure
+    goes: through `jit`, `scan` and `vmap` (a state of another spec is told apart at
+    trace time) and through flax.serialization and orbax checkpoints (restored from the
+    target state, as every namedtuple is). Specs with the same configuration share it,
+    so a state checkpointed by one process is accepted by the same spec built in another.
+    """
+    kind = collections.namedtuple(f"MetricsSpec_{fingerprint[:12]}", [])
+    kind.fingerprint = fingerprint  # type: ignore[attr-defined]
+    return kind()

@@ -30,6 +30,29 @@ def test_count_merge_is_exact(a, b):
     assert _count.to_int(jax.jit(_count.merge)(make(a), make(b))) == a + b
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(
+        st.one_of(st.integers(-(2**31), 2**31 - 1), st.integers(0, 2**32 - 1).map(str)),
+        min_size=1,
+        max_size=12,
+    )
+)
+def test_increment_signed_and_unsigned_is_exact_against_python_ints(incs):
+    # int32 increments (negative ones subtract) and uint32 ones (given here as strings),
+    # traced, against Python's integers: -1 once made the counter 4294967295.
+    m = jm.Metrics(counters=["u"])
+    inc = jax.jit(m.increment, static_argnums=1)
+    s, want = m.init(0), 0
+    for i in incs:
+        v = jnp.asarray(int(i), jnp.uint32) if isinstance(i, str) else jnp.asarray(i, jnp.int32)
+        s, want = inc(s, "u", v), want + int(i)
+    assert m.to_host(m.compute(s))["Counters/u"] == want
+    # Python ints take the same path, below zero and past int32's range.
+    s = m.increment(m.increment(m.init(0), "u", -5), "u", 2**32 - 1)
+    assert m.to_host(m.compute(s))["Counters/u"] == 2**32 - 6
+
+
 def test_env_steps_exact_past_2_pow_31():
     # 4096 envs x 600k steps = 2.46e9 env steps: an int32 counter would have wrapped.
     n_env, steps = 4096, 600_000

@@ -48,6 +48,8 @@ def ident(s):
         ({"counters": ("a", "a")}, r"duplicate counter names"),
         ({"nonfinite": "drop"}, r"Metrics\(nonfinite=...\): unknown nonfinite policy"),
         ({"dtype": jnp.int32}, r"must be a float dtype"),
+        ({"dtype": jnp.bfloat16}, r"Metrics\(dtype=bfloat16\): .* Use float32"),
+        ({"dtype": jnp.float16}, r"Metrics\(dtype=float16\): .* Use float32"),
     ],
 )
 def test_bad_spec_rejected_when_built(kwargs, match):
@@ -107,8 +109,10 @@ N = 8
         ),
         (lambda s: jnp.stack([s, s], -1), r"reduce the extra axes"),
         (lambda s: s[:3], r"returned shape \(3,\)"),
-        (lambda s: s.astype(jnp.complex64), r"term 'x' returned dtype complex64"),
-        (lambda s: "fast", r"term 'x' returned .*float/int/bool|term 'x' returned dtype"),
+        (lambda s: s.astype(jnp.complex64), r"term 'x': got dtype complex64; give float"),
+        (lambda s: "fast", r"term 'x': got 'fast' \(numpy dtype <U4\); give float, int or bool"),
+        (lambda s: None, r"term 'x': got None; give float, int or bool values"),
+        (lambda s: {"a": s}, r"term 'x' returned a dict .* Term\(fn, outputs=\['a'\]\)"),
     ],
 )
 def test_bad_term_output_rejected_at_trace_time(fn, match):
@@ -136,6 +140,30 @@ def test_bad_done_rejected():
         m.update(m.init(N), jnp.zeros(N), jnp.zeros((N, 1), bool))
 
 
+@pytest.mark.parametrize("done", [[0.1] * N, [jnp.nan] * N, [-1.0] * N, [1.0] * N])
+def test_float_done_rejected_at_trace_time(done):
+    # 0.1, NaN and -1 used to count as episode ends without a word.
+    m = jm.Metrics(terms={"x": ident})
+    with pytest.raises(TypeError, match=r"done has dtype float32; .*state.done.astype\(bool\)"):
+        jax.jit(m.update)(m.init(N), jnp.zeros(N), jnp.asarray(done, jnp.float32))
+
+
+def test_integer_done_means_nonzero():
+    m = jm.Metrics(terms={"x": ident})
+    done = jnp.asarray([0, 1, 2, -1, 0, 0, 0, 0], jnp.int32)
+    s = m.update(m.init(N), jnp.arange(N, dtype=jnp.float32), done)
+    host = m.to_host(m.compute(s))
+    assert host["Counters/episodes"] == 3
+    assert host["Episode_Metrics/x"] == pytest.approx((1 + 2 + 3) / 3)
+
+
+def test_update_of_the_merge_identity_names_the_fix():
+    m = jm.Metrics(terms={"x": ident})
+    for empty in (m.init(0), m.empty()):
+        with pytest.raises(ValueError, match=r"this state has no envs: .* Use init\(num_envs\)"):
+            m.update(empty, jnp.zeros(0), jnp.zeros(0, bool))
+
+
 def test_bad_log_and_increment_rejected():
     m = jm.Metrics(logged=["loss"], counters=["updates"])
     s = m.init(0)
@@ -145,6 +173,24 @@ def test_bad_log_and_increment_rejected():
         m.increment(s, "update")
     with pytest.raises(TypeError, match=r"`by` must be a scalar int"):
         m.increment(s, "updates", 1.5)
+    with pytest.raises(ValueError, match=r"`by` must be in \[-2\^31, 2\^32\)"):
+        m.increment(s, "updates", 2**32)
+    for bad, match in (
+        (None, r"log: 'loss': got None"),
+        ("a", r"log: 'loss': got 'a' \(numpy dtype <U1\)"),
+        ([object()], r"log: 'loss': got list of non-numbers"),
+    ):
+        with pytest.raises(TypeError, match=match):
+            m.log(s, {"loss": bad})
+
+
+def test_log_of_an_empty_array_logs_nothing():
+    m = jm.Metrics(logged=["loss", "kl"])
+    s = m.log(m.init(0), {"loss": jnp.zeros((0,)), "kl": jnp.asarray([2.0, 4.0])})
+    s = jax.jit(m.log)(s, {"loss": jnp.zeros((0, 3))})
+    host = m.to_host(m.compute(s))
+    assert host["Train/loss/count"] == 0
+    assert host["Train/kl/count"] == 2 and host["Train/kl"] == 3.0
 
 
 def test_state_from_another_spec_rejected():
@@ -152,6 +198,27 @@ def test_state_from_another_spec_rejected():
     b = jm.Metrics(terms={"x": ident, "y": ident})
     with pytest.raises(ValueError, match=r"built by a different Metrics spec"):
         b.update(a.init(N), jnp.zeros(N), jnp.zeros(N, bool))
+    # Same shapes, other names or statistics: once relabelled without a word.
+    same_shape = [
+        jm.Metrics(terms={"y": ident}),
+        jm.Metrics(terms={"x": jm.Term(ident, reduce="sum")}),
+        jm.Metrics(terms={"x": ident}, episode_prefix="Ep"),
+        jm.Metrics(logged=["loss"]),
+    ]
+    for other in same_shape:
+        for fn in (
+            lambda s, o=other: o.compute(s),
+            lambda s, o=other: jax.jit(o.compute)(s),
+            lambda s, o=other: o.merge(s, s),
+            lambda s, o=other: jax.jit(o.update)(s, jnp.zeros(N), jnp.zeros(N, bool)),
+        ):
+            with pytest.raises(ValueError, match=r"built by a different Metrics spec"):
+                fn(a.init(N))
+    with pytest.raises(ValueError, match=r"built by a different Metrics spec"):
+        jm.Metrics(logged=["kl"]).log(jm.Metrics(logged=["loss"]).init(0), {"kl": 1.0})
+    # The same configuration built twice (e.g. in a resumed process) is the same spec.
+    again = jm.Metrics(terms={"x": ident})
+    assert again.to_host(again.compute(a.init(N)))["Episode_Metrics/x/count"] == 0
     with pytest.raises(TypeError, match=r"expected a MetricsState"):
         a.compute({"not": "a state"})
 

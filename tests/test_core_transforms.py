@@ -106,8 +106,9 @@ def test_cond_branches_keep_state_types():
     assert m.to_host(m.compute(reset))["Episode_Metrics/x/count"] == 0
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.bfloat16, jnp.float16])
-def test_state_shapes_and_dtypes_stable_through_scan(dtype):
+def test_state_shapes_and_dtypes_stable_through_scan():
+    # float32 only: narrower state dtypes are refused (test_core_errors).
+    dtype = jnp.float32
     m = make(dtype)
     xs, dones = data(jax.random.key(2), 5)
     init = m.init(E)
