@@ -91,7 +91,7 @@ def _bare(c, s):
 
 def _with_metrics(metrics: jm.Metrics):
     def per_step(ms, s):
-        return metrics.update(ms, s, s.done), None
+        return metrics.update(ms, s, s.done.astype(bool)), None
 
     return per_step
 
@@ -104,7 +104,7 @@ def _with_both(metrics: jm.Metrics):
     def per_step(c, s):
         ms, fs = c
         return (
-            metrics.update(ms, s, s.done),
+            metrics.update(ms, s, s.done.astype(bool)),
             wl.floor_update(fs, wl.rollout_values(s), s.done),
         ), None
 
