@@ -7,6 +7,8 @@ from typing import Any
 
 from .._report import Record
 from .._tags import TagInfo
+from .._validate import is_int
+from ._append import AppendFile
 from ._paths import fs_path
 
 
@@ -35,12 +37,19 @@ class JsonlWriter:
     Each line is `{"step", "wall_time", "scalars": {tag: value}, "histograms": {tag:
     {"edges", "counts", "underflow", "overflow"}}, "windows": {tag: [values]}}`. Values
     are exact (float64, counts as integers) and never NaN, so every line is strict JSON.
-    Lines are appended with one `write` each on an unbuffered file, so a crash leaves at
-    most a partial last line, and a resumed run appends to the same file.
+
+    The file only ever holds whole lines: each is written and fsync'ed on its own, and a
+    write that fails part-way (a full disk) is cut back before the error reaches the
+    `Logger`, so later lines start on a line of their own. Opening an existing file
+    drops a partial last line (left by a crash: never acknowledged by `Logger.wait`).
 
     Args:
       path: the file; its directory is created if missing. Checked here: an invalid or
         unwritable path raises `ValueError` naming it.
+      purge_step: when resuming a run from a checkpoint taken at an earlier step: lines
+        with a step >= `purge_step` are dropped from the existing file (rewritten
+        atomically), so the resumed run's records replace them instead of following
+        them (the same rule as `TensorBoardWriter(purge_step=...)`).
 
     Examples:
       >>> import json, os, tempfile, jaxmetrics as jm
@@ -54,14 +63,19 @@ class JsonlWriter:
       0.5
     """
 
-    def __init__(self, path: str | os.PathLike):
+    def __init__(self, path: str | os.PathLike, *, purge_step: int | None = None):
         p = fs_path(path, "JsonlWriter", "path", "file path")
+        if purge_step is not None and (not is_int(purge_step) or purge_step < 0):
+            raise ValueError(
+                f"JsonlWriter: purge_step must be an int >= 0 or None, got {purge_step!r}."
+            )
         self.path = p
         try:
             parent = os.path.dirname(p)
             if parent:
                 os.makedirs(parent, exist_ok=True)
-            self._file = open(p, "ab", buffering=0)  # noqa: SIM115 (closed in close())
+            _repair(p, purge_step)
+            self._file = AppendFile(p)
         except (OSError, ValueError) as e:
             raise ValueError(
                 f"JsonlWriter: cannot open {p!r} for appending: {e}. Pass a writable file path."
@@ -73,10 +87,39 @@ class JsonlWriter:
     def write(self, record: Record) -> None:
         """Appends the record as one line."""
         line = json.dumps(record_to_json(record), allow_nan=False, separators=(",", ":"))
-        data = memoryview((line + "\n").encode())
-        while data:
-            data = data[self._file.write(data) :]
+        self._file.append((line + "\n").encode())
 
     def close(self) -> None:
         """Closes the file."""
         self._file.close()
+
+
+def _repair(path: str, purge_step: int | None) -> None:
+    """Drops a partial last line, and with `purge_step` every line from that step on."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except FileNotFoundError:
+        return
+    whole = data[: data.rfind(b"\n") + 1]
+    keep = whole
+    if purge_step is not None:
+        lines = whole.splitlines(keepends=True)
+        for i, line in enumerate(lines):
+            try:
+                step = json.loads(line)["step"]
+            except (ValueError, KeyError, TypeError):
+                raise ValueError(
+                    f"line {i + 1} is not a JsonlWriter record, so purge_step cannot apply"
+                ) from None
+            if step >= purge_step:
+                lines[i] = b""
+        keep = b"".join(lines)
+    if keep == data:
+        return
+    tmp = f"{path}.{os.getpid()}.tmp"
+    with open(tmp, "wb") as f:
+        f.write(keep)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)

@@ -1,6 +1,9 @@
 """TensorBoard event files through tensorboardX (imported when the writer is created)."""
 
 import os
+import socket
+import struct
+import time
 import uuid
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -11,6 +14,7 @@ from .. import _tags
 from .._report import HistogramData, Record
 from .._tags import TagInfo
 from .._validate import is_int
+from ._append import AppendFile
 from ._paths import fs_path
 
 _HPARAM_TYPES = (bool, int, float, str)
@@ -53,9 +57,10 @@ class TensorBoardWriter:
 
     Tags are TensorBoard-sanitized (the spec already rejects tags that would collide).
     Events of one record go out as one event, flushed and fsync'ed on every write, so
-    whatever was written survives a crash of the process. The event file is created by
-    `open` (when the `Logger` starts, or at a `ProgressFn`'s first call), so a run that
-    fails before leaves none.
+    whatever was written survives a crash of the process; a write that fails part-way
+    (a full disk) is cut back before the error reaches the `Logger`, so the file stays
+    readable past it. The event file is created by `open` (when the `Logger` starts, or
+    at a `ProgressFn`'s first call), so a run that fails before leaves none.
 
     Args:
       logdir: the run directory; created if missing. It is checked here: an invalid or
@@ -64,9 +69,14 @@ class TensorBoardWriter:
       hparam_metrics: tags the HParams dashboard shows; only with `hparams`.
       window_bins: bins of the window-contents histograms.
       std_bands: write the mean ± std bands for the Custom Scalars tab.
+      purge_step: when resuming a run in the same `logdir` from a checkpoint taken at an
+        earlier step: TensorBoard hides every event of this run with a step >=
+        `purge_step` written before (tensorboardX's `SummaryWriter(purge_step=...)`
+        semantics: a session-start event at that step), so the resumed run's points
+        replace them instead of drawing the curve back over itself.
 
     Raises:
-      ValueError: bad `logdir`, `window_bins` or hparams.
+      ValueError: bad `logdir`, `window_bins`, `purge_step` or hparams.
       TypeError: hparam values of another type, or a `std_bands` that is not a bool.
     """
 
@@ -78,10 +88,15 @@ class TensorBoardWriter:
         hparam_metrics: Sequence[str] | None = None,
         window_bins: int = 30,
         std_bands: bool = False,
+        purge_step: int | None = None,
     ):
         if not is_int(window_bins) or window_bins < 1:
             raise ValueError(
                 f"TensorBoardWriter: window_bins must be an int >= 1, got {window_bins!r}."
+            )
+        if purge_step is not None and (not is_int(purge_step) or purge_step < 0):
+            raise ValueError(
+                f"TensorBoardWriter: purge_step must be an int >= 0 or None, got {purge_step!r}."
             )
         if not isinstance(std_bands, bool):
             raise TypeError(f"TensorBoardWriter: std_bands must be a bool, got {std_bands!r}.")
@@ -107,20 +122,22 @@ class TensorBoardWriter:
         self._hparam_metrics = None if hparam_metrics is None else list(hparam_metrics)
         self._bins = window_bins
         self._std_bands = std_bands
+        self._purge_step = purge_step
 
         from tensorboardX import summary
-        from tensorboardX.event_file_writer import EventsWriter
-        from tensorboardX.proto.event_pb2 import Event
+        from tensorboardX.proto.event_pb2 import Event, SessionLog
         from tensorboardX.proto.summary_pb2 import HistogramProto, Summary
+        from tensorboardX.record_writer import masked_crc32c
 
-        self._summary, self._EventsWriter, self._Event, self._Hist, self._Summary = (
+        self._summary, self._Event, self._SessionLog, self._Hist, self._Summary = (
             summary,
-            EventsWriter,
             Event,
+            SessionLog,
             HistogramProto,
             Summary,
         )
-        self._events: Any = None
+        self._crc = masked_crc32c
+        self._events: AppendFile | None = None
         self._bands: dict[str, tuple[str, str, str]] = {}
 
     def open(self, tags: Sequence[TagInfo]) -> None:
@@ -152,16 +169,25 @@ class TensorBoardWriter:
             + [(t, f"band of {m!r}") for m, b in self._bands.items() for t in b[1:]]
         )
         # tensorboardX's SummaryWriter hands events to a background queue that its flush()
-        # does not drain; the synchronous EventsWriter below flushes (and fsyncs) for real.
-        # The suffix keeps two writers opened in the same second from sharing a file name.
+        # does not drain; events here go to disk synchronously, fsync'ed, whole or not at
+        # all. The suffix keeps two writers opened in the same second apart.
+        name = (
+            f"events.out.tfevents.{int(time.time())}.{socket.gethostname()}."
+            f"{os.getpid()}.{uuid.uuid4().hex[:8]}"
+        )
         try:
-            self._events = self._EventsWriter(
-                os.path.join(self.logdir, "events"), f".{os.getpid()}.{uuid.uuid4().hex[:8]}"
-            )
+            self._events = AppendFile(os.path.join(self.logdir, name))
+            self._write_event(self._Event(wall_time=time.time(), file_version="brain.Event:2"))
         except OSError as e:
             raise ValueError(
                 f"TensorBoardWriter: cannot create an event file in {self.logdir!r}: {e}."
             ) from None
+        if self._purge_step is not None:
+            # TensorBoard drops this run's earlier events from this step on.
+            start = self._SessionLog(status=self._SessionLog.START)
+            self._write_event(
+                self._Event(wall_time=time.time(), step=self._purge_step, session_log=start)
+            )
         summaries = []
         if layout:
             summaries.append(self._summary.custom_scalars(layout))
@@ -174,8 +200,18 @@ class TensorBoardWriter:
             )
             summaries += [exp, ssi]
         for s in summaries:
-            self._events.write_event(self._Event(summary=s))
-        self._events.flush()
+            self._write_event(self._Event(wall_time=time.time(), summary=s))
+
+    def _write_event(self, event: Any) -> None:
+        data = event.SerializeToString()
+        header = struct.pack("<Q", len(data))
+        assert self._events is not None
+        self._events.append(
+            header
+            + struct.pack("<I", self._crc(header))
+            + data
+            + struct.pack("<I", self._crc(data))
+        )
 
     def write(self, record: Record) -> None:
         """Writes one record as one event and flushes it to disk."""
@@ -197,8 +233,7 @@ class TensorBoardWriter:
         event = self._Event(
             wall_time=record.wall_time, step=record.step, summary=self._Summary(value=values)
         )
-        self._events.write_event(event)
-        self._events.flush()
+        self._write_event(event)
 
     def _histogram_stat(self, h: HistogramData) -> Any:
         counts = np.asarray(h.counts, np.float64)
@@ -234,7 +269,9 @@ class TensorBoardWriter:
         """Ends the hparams session (if any) and closes the event file (if opened)."""
         if self._events is None:
             return
-        if self._hparams is not None:
-            _, _, sei = self._summary.hparams(self._hparams, {})
-            self._events.write_event(self._Event(summary=sei))
-        self._events.close()
+        try:
+            if self._hparams is not None:
+                _, _, sei = self._summary.hparams(self._hparams, {})
+                self._write_event(self._Event(wall_time=time.time(), summary=sei))
+        finally:
+            self._events.close()
