@@ -6,6 +6,8 @@ Please don't use symbols from the private `_*` modules: everything public is re-
 from ._count import Count as Count
 from ._logger import Logger as Logger
 from ._logger import NonFiniteError as NonFiniteError
+from ._logger import WriterError as WriterError
+from ._logger import WriterTimeoutError as WriterTimeoutError
 from ._metrics import Metrics as Metrics
 from ._report import HistogramData as HistogramData
 from ._report import Record as Record
@@ -49,6 +51,8 @@ __all__ = [
     "Transition",
     "Window",
     "Writer",
+    "WriterError",
+    "WriterTimeoutError",
     "ema",
     "histogram",
     "window",

@@ -10,6 +10,7 @@ what goes wrong there, and the non-finite policy, surface on the caller's thread
 
 import atexit
 import functools
+import os
 import queue
 import sys
 import threading
@@ -32,7 +33,7 @@ from ._state import MetricsState
 from ._tags import TagInfo
 from ._timer import Timers
 from ._transfer import Packer
-from ._validate import is_int
+from ._validate import is_int, is_number
 
 WritersArg = Sequence[Writer] | Callable[[int], Sequence[Writer]]
 
@@ -74,6 +75,55 @@ class _Layout:
 
 class NonFiniteError(FloatingPointError):
     """Raised on the caller's thread for metrics whose nonfinite policy is "raise"."""
+
+
+class WriterError(RuntimeError):
+    """Every writer failure since the last check, raised together on the caller's thread.
+
+    Attributes:
+      failures: one exception per failure, in the order they happened; each message
+        names the writer, the run and the step (its `__cause__` is the writer's error).
+    """
+
+    def __init__(self, failures: Sequence[BaseException]):
+        self.failures = tuple(failures)
+        super().__init__(
+            f"{len(self.failures)} failure(s) writing records; what they did not write is "
+            "lost, the rest is on disk:\n  " + "\n  ".join(str(f) for f in self.failures)
+        )
+        self.__cause__ = self.failures[0] if self.failures else None
+
+
+class WriterTimeoutError(WriterError, TimeoutError):
+    """A writer call has not returned within the `Logger`'s `timeout`: the writer thread
+    is stuck, and nothing queued behind the call is written until it returns."""
+
+
+# Loggers not yet closed, closed together at interpreter exit (in creation order).
+_OPEN: dict[int, "Logger"] = {}
+
+
+def _close_all_at_exit() -> None:
+    """Closes every open logger; if any loses records, says so and exits with status 1
+    (an exception in an exit handler would be printed and the process would exit 0)."""
+    failed = []
+    for logger in list(_OPEN.values()):
+        try:
+            logger.close()
+        except Exception as e:  # noqa: BLE001 (reported below)
+            failed.append(e)
+    if failed:
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+        sys.stderr.write(
+            "jaxmetrics: closing the Logger(s) at interpreter exit failed; exiting with "
+            "status 1:\n" + "\n".join(f"  {type(e).__name__}: {e}" for e in failed) + "\n"
+        )
+        sys.stderr.flush()
+        os._exit(1)
+
+
+atexit.register(_close_all_at_exit)
 
 
 class _PendingNonFinite(NamedTuple):
@@ -125,9 +175,20 @@ class Logger(AbstractContextManager):
     Non-finite values (policy "skip" warns with a `RuntimeWarning` attributed to the
     caller's line, "raise" raises `NonFiniteError`; both name the metric, the run and the
     step; "propagate" is silent) surface on the caller's thread at a fixed point: a
-    flush's are checked by the *next* `flush` (after it has queued its own report, so no
-    data is lost) or by `wait()`/`close()`; emitted ones by the next `flush`, `wait()` or
-    `close()` after the jitted call. Writer errors surface the same way.
+    flush's are checked by the *next* `flush` or by `wait()`/`close()`; emitted ones by
+    the next `flush`, `wait()` or `close()` after the jitted call. Writer errors surface
+    the same way, all of them at once (`WriterError`, naming writer, run and step).
+
+    A `flush` that raises has done nothing: it did not queue its report and the state
+    you passed still holds the period, so catching the error and flushing that state
+    again later counts every episode once (the next record covers both periods). A
+    `flush` that returns has queued its report: `wait()` or `close()` writes it, also
+    when another thread closes the logger meanwhile.
+
+    A writer call that does not return within `timeout` seconds (a hung network disk)
+    makes `flush` (once `max_pending` reports wait), `wait` and `close` raise
+    `WriterTimeoutError` instead of hanging; at interpreter exit the open loggers are
+    closed, and if that fails the process prints what was lost and exits with status 1.
 
     Attributes:
       metrics: the spec.
@@ -149,6 +210,9 @@ class Logger(AbstractContextManager):
       timer_prefix: tag prefix of the timers.
       max_pending: flushes that may wait for the writer thread before `flush` blocks
         (back-pressure when the disk is slower than training).
+      timeout: seconds one writer call (`open`, `write`, `close`) may take before the
+        calls that wait for the writer thread raise `WriterTimeoutError`; None waits
+        forever.
 
     Examples:
       >>> import jax.numpy as jnp, jaxmetrics as jm
@@ -176,6 +240,7 @@ class Logger(AbstractContextManager):
         include_running: bool = False,
         timer_prefix: str = "Timers",
         max_pending: int = 8,
+        timeout: float | None = 120.0,
     ):
         if not isinstance(metrics, Metrics):
             raise TypeError(f"Logger: metrics must be a jaxmetrics.Metrics, got {metrics!r}.")
@@ -183,6 +248,8 @@ class Logger(AbstractContextManager):
             raise ValueError(f"Logger: runs must be an int >= 1, got {runs!r}.")
         if not is_int(max_pending) or max_pending < 1:
             raise ValueError(f"Logger: max_pending must be an int >= 1, got {max_pending!r}.")
+        if timeout is not None and (not is_number(timeout) or not timeout > 0):
+            raise ValueError(f"Logger: timeout must be seconds > 0 or None, got {timeout!r}.")
         if not isinstance(timer_prefix, str) or not timer_prefix:
             raise ValueError(
                 f"Logger: timer_prefix must be a non-empty string, got {timer_prefix!r}."
@@ -245,7 +312,13 @@ class Logger(AbstractContextManager):
         self._flush_fns = functools.cache(flush_fn)
         self._emit = InGraphEmit(compute, metrics.reset_period, self._on_emit)
         self._timers = Timers()
+        self._timeout = None if timeout is None else float(timeout)
         self._lock = threading.Lock()
+        # Held while deciding "open or closed" and queueing: nothing lands behind close.
+        self._door = threading.Lock()
+        self._busy: tuple[str, float] | None = None  # the writer call under way, since
+        self._last_step: list[int | None] = [None] * self.runs  # flushed host steps
+        self._written_step: list[int | None] = [None] * self.runs  # on the writer thread
         self._errors: list[BaseException] = []
         self._unchecked: list[_PendingNonFinite] = []
         self._slots = threading.Semaphore(max_pending)
@@ -263,7 +336,7 @@ class Logger(AbstractContextManager):
         self._thread = threading.Thread(target=self._work, name="jaxmetrics-logger", daemon=True)
         self._thread.start()
         # Daemon threads die at interpreter exit: drain whatever is queued first.
-        atexit.register(self.close)
+        _OPEN[id(self)] = self
 
     @staticmethod
     def _make_writers(writers: WritersArg, runs: int) -> list[list[Writer]]:
@@ -306,9 +379,12 @@ class Logger(AbstractContextManager):
           counters are the very arrays of `state` (no copy of O(num_envs) data).
 
         Raises:
-          NonFiniteError: a metric with policy "raise" saw non-finite values in the
-            previous flush (this flush is queued first).
-          RuntimeError: the logger is closed, or a writer failed.
+          NonFiniteError: a metric with policy "raise" saw non-finite values in an
+            earlier flush.
+          WriterError: writers failed since the last check.
+          WriterTimeoutError: the writer thread is stuck in a writer call.
+          RuntimeError: the logger is closed.
+          When it raises, the flush has done nothing (see the class docstring).
         """
         self._check_open("flush")
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(state)):
@@ -318,19 +394,27 @@ class Logger(AbstractContextManager):
             )
         self._check_leading(state)
         self._check_step(step)
-        mesh = mesh_of(state)
-        layout = None if mesh is None else _Layout(jax.tree.map(lambda x: x.sharding, state))
-        (floats, counts), finished, logged = self._flush_fns(mesh, layout)(state)
-        floats.copy_to_host_async()
-        counts.copy_to_host_async()
+        # What earlier flushes left to report is raised before this one acts.
+        self._surface(self._take_unchecked())
+        self._await(lambda t: self._slots.acquire(timeout=t), "flush")
+        try:
+            mesh = mesh_of(state)
+            layout = None if mesh is None else _Layout(jax.tree.map(lambda x: x.sharding, state))
+            (floats, counts), finished, logged = self._flush_fns(mesh, layout)(state)
+            floats.copy_to_host_async()
+            counts.copy_to_host_async()
+            with self._door:
+                self._check_open("flush")
+                timers = self._timers.take()
+                self._queue.put(functools.partial(self._write_flush, floats, counts, step, timers))
+        except BaseException:
+            self._slots.release()
+            raise
         self.report_nbytes = floats.nbytes + counts.nbytes
-        timers = self._timers.take()
-        self._slots.acquire()
-        self._queue.put(functools.partial(self._write_flush, floats, counts, step, timers))
-        earlier = self._take_unchecked()
+        if is_int(step):
+            self._last_step = [int(step)] * self.runs
         with self._lock:
             self._unchecked.append(_PendingNonFinite(step, tuple(range(self.runs)), counts))
-        self._surface(earlier)
         return state._replace(finished=finished, logged=logged)
 
     def timer(self, name: str) -> AbstractContextManager[None]:
@@ -360,8 +444,10 @@ class Logger(AbstractContextManager):
         self._check_open("wait")
         jax.effects_barrier()
         done = threading.Event()
-        self._queue.put(done.set)
-        done.wait()
+        with self._door:
+            self._check_open("wait")
+            self._queue.put(done.set)
+        self._await(done.wait, "wait")
         self._surface(self._take_unchecked())
 
     def close(self) -> None:
@@ -372,11 +458,14 @@ class Logger(AbstractContextManager):
         if self._closed:
             return
         jax.effects_barrier()  # emits still in flight land before the door closes
-        self._closed = True
-        atexit.unregister(self.close)
-        self._queue.put(self._close_writers)
-        self._queue.put(None)
-        self._thread.join()
+        with self._door:
+            if self._closed:
+                return
+            self._closed = True
+            self._queue.put(self._close_writers)
+            self._queue.put(None)
+        _OPEN.pop(id(self), None)
+        self._await(lambda t: (self._thread.join(t), not self._thread.is_alive())[1], "close")
         self._surface(self._take_unchecked())
 
     def __exit__(self, *exc: object) -> None:
@@ -441,15 +530,15 @@ class Logger(AbstractContextManager):
     def _on_emit(
         self, packed: tuple[np.ndarray, np.ndarray], step: Any, when: Any, run: Any
     ) -> None:
-        if self._closed:
-            # Raised inside the jitted call that emitted, the only place left to report it.
-            raise RuntimeError("Logger.emit: the logger is closed; create a new Logger.")
         wall_time = time.time()
         n = int(np.size(when))
         floats = np.reshape(packed[0], (n, -1))
         counts = np.reshape(packed[1], (n, 2, -1))
         step, when, run = (np.reshape(a, (n,)) for a in (step, when, run))
-        with self._lock:
+        with self._door, self._lock:
+            if self._closed:
+                # Raised inside the jitted call that emitted, the only place left to say it.
+                raise RuntimeError("Logger.emit: the logger is closed; create a new Logger.")
             self.emit_calls += 1
             for i in np.flatnonzero(when):
                 r, s = int(run[i]), int(step[i])
@@ -498,11 +587,27 @@ class Logger(AbstractContextManager):
         wall_time: float,
         timers: dict,
     ) -> None:
+        if not 0 <= step < 2**63:
+            raise ValueError(
+                f"run {run}: step {step} is outside [0, 2^63) (TensorBoard's int64); the "
+                "record was not written."
+            )
+        last = self._written_step[run]
+        if last is not None and step < last:
+            with self._lock:
+                self._errors.append(
+                    ValueError(
+                        f"run {run}: step {step} written after step {last}; steps must not "
+                        "decrease (charts would draw back over themselves). To resume a run "
+                        "from an earlier step, create its writers with purge_step=<step>."
+                    )
+                )
+        self._written_step[run] = step
         values = [(self._infos[tag], v) for tag, v in host().items()]
         record = self._builders[run](values, step, wall_time, timers)
         for w in self._writers[run]:
             try:
-                w.write(record)
+                self._call(f"writer {w!r} of run {run} (write, step {step})", w.write, record)
             except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
                 err = RuntimeError(f"writer {w!r} of run {run} failed at step {step}: {e!r}")
                 err.__cause__ = e
@@ -513,12 +618,43 @@ class Logger(AbstractContextManager):
         for run, ws in enumerate(self._writers):
             for w in ws:
                 try:
-                    w.close()
+                    self._call(f"writer {w!r} of run {run} (close)", w.close)
                 except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
                     err = RuntimeError(f"closing writer {w!r} of run {run} failed: {e!r}")
                     err.__cause__ = e
                     with self._lock:
                         self._errors.append(err)
+
+    def _call(self, what: str, fn: Callable[..., None], *args: Any) -> None:
+        """A writer call, timed for `_await`."""
+        self._busy = (what, time.monotonic())
+        try:
+            fn(*args)
+        finally:
+            self._busy = None
+
+    def _await(self, wait: Callable[[float], bool], fn: str) -> None:
+        """Calls `wait(seconds)` until it returns True; raises `WriterTimeoutError` once
+        a writer call has been under way for longer than the timeout."""
+        while not wait(0.05):
+            busy = self._busy
+            if busy is None or self._timeout is None:
+                continue
+            stuck = time.monotonic() - busy[1]
+            if stuck > self._timeout:
+                with self._lock:
+                    errors, self._errors = self._errors, []
+                raise WriterTimeoutError(
+                    [
+                        TimeoutError(
+                            f"Logger.{fn}: {busy[0]} has not returned for {stuck:.0f} s "
+                            f"(timeout={self._timeout:g} s); what is queued behind it is not "
+                            "written. Find what blocks the writer (a hung network disk?), or "
+                            "pass Logger(timeout=None) to wait for ever."
+                        ),
+                        *errors,
+                    ]
+                )
 
     # ------------------------------------------------------------------ checks
 
@@ -557,6 +693,19 @@ class Logger(AbstractContextManager):
                 f"Logger.flush: step must be an int (or an int array of shape () or "
                 f"({self.runs},)), got {step!r}."
             )
+        if not is_int(step):
+            return  # a device array: checked on the writer thread
+        if not 0 <= step < 2**63:
+            raise ValueError(
+                f"Logger.flush: step must be in [0, 2^63) (TensorBoard stores int64), got {step}."
+            )
+        last = max((s for s in self._last_step if s is not None), default=None)
+        if last is not None and step < last:
+            raise ValueError(
+                f"Logger.flush: step {step} after step {last}; steps must not decrease (charts "
+                "would draw back over themselves). To resume a run from an earlier step, "
+                "create a new Logger whose writers have purge_step=<step>."
+            )
 
     def _take_unchecked(self) -> list[_PendingNonFinite]:
         with self._lock:
@@ -588,8 +737,9 @@ class Logger(AbstractContextManager):
         with self._lock:
             errors, self._errors = self._errors, []
         if errors:
-            if raising and hasattr(errors[0], "add_note"):
-                errors[0].add_note("Also non-finite values: " + "; ".join(raising))
-            raise errors[0]
+            error = WriterError(errors)
+            if raising:
+                error.add_note("Also non-finite values: " + "; ".join(raising))
+            raise error
         if raising:
             raise NonFiniteError("; ".join(raising))

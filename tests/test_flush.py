@@ -148,17 +148,24 @@ def test_everything_flushed_before_sigkill_is_readable(tmp_path):
         np.testing.assert_array_equal([v for _, v in got], np.arange(len(steps)) * 0.5)
 
 
-def test_nonfinite_raise_surfaces_at_the_next_flush_without_losing_data(tmp_path):
+def test_a_flush_that_raises_has_done_nothing_so_flushing_again_counts_once(tmp_path):
+    # The raising flush used to queue its own report first: a caller that caught the
+    # error and flushed its state again wrote that period twice.
     metrics = _log_metrics(nonfinite="raise")
     path = tmp_path / "m.jsonl"
     logger = jm.Logger(metrics, [jm.JsonlWriter(path)])
     state = logger.flush(metrics.log(metrics.init(1), {"x": jnp.float32(np.nan)}), 0)
+    state = metrics.log(state, {"x": jnp.float32(2.0)})
     with pytest.raises(jm.NonFiniteError, match="step 0, run 0: logged value 'x': 1 non-finite"):
-        logger.flush(metrics.log(state, {"x": jnp.float32(2.0)}), 1)
+        logger.flush(state, 1)
+    state = logger.flush(state, 1)
     logger.close()
     with open(path) as f:
-        steps = [(d["step"], d["scalars"].get("Train/x")) for d in map(json.loads, f)]
-    assert steps == [(0, None), (1, 2.0)]  # both flushes were written
+        got = [
+            (d["step"], d["scalars"].get("Train/x"), d["scalars"]["Train/x/count"])
+            for d in map(json.loads, f)
+        ]
+    assert got == [(0, None, 0), (1, 2.0, 1)]
 
 
 def test_nonfinite_raise_in_the_last_flush_surfaces_at_close(tmp_path):
@@ -179,7 +186,8 @@ def test_nonfinite_skip_warns_at_the_callers_line_naming_metric_run_and_step():
     state = jax.vmap(lambda _: metrics.init(1))(jnp.arange(2))
     state = logger.flush(log(state, jnp.array([1.0, np.nan], jnp.float32)), 4)
     want = (
-        r"^step 4, run 1: logged value 'x': 1 non-finite value\(s\) left out \(Train/x/nonfinite\)$"
+        r"^step 4, run 1: logged value 'x': 1 non-finite value\(s\) left out or statistic\(s\) "
+        r"overflowed \(Train/x/nonfinite\)$"
     )
     with pytest.warns(RuntimeWarning, match=want) as caught:
         line = inspect.currentframe().f_lineno + 1
