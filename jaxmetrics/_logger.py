@@ -436,6 +436,35 @@ class Logger(AbstractContextManager):
             self._timer_tags.add(tag)
         return self._timers.measure(tag)
 
+    def resume(self, state: MetricsState, step: int) -> None:
+        """Continues a run restored from a checkpoint: call it once, before the first
+        `flush`, with the restored state and the step it was saved at.
+
+        Counters' `/per_sec` then start from the restored totals (the first record has
+        a rate, measured from this call), and flushes must not go below `step`. Create
+        the writers with `purge_step=step + 1` (or the first step the resumed run will
+        write), so earlier records past the checkpoint are dropped, not drawn twice.
+        Checkpoint the state that `flush` returned, so that the periods line up.
+
+        Args:
+          state: the restored state (with a leading `[runs]` axis when `runs > 1`).
+          step: the step of the checkpoint.
+        """
+        self._check_open("resume")
+        self._check_leading(state)
+        if not is_int(step) or not 0 <= step < 2**63:
+            raise ValueError(f"Logger.resume: step must be an int in [0, 2^63), got {step!r}.")
+        totals = self._packer.totals(
+            self._flush_fns(None, None)(jax.device_get(state))[0][1], self.runs
+        )
+        now = time.time()
+        with self._door:
+            self._check_open("resume")
+            for run in range(self.runs):
+                self._builders[run].start(now, totals[run])
+            self._last_step = [int(step)] * self.runs
+            self._written_step = [int(step)] * self.runs
+
     def wait(self) -> None:
         """Blocks until everything flushed or emitted so far is written.
 

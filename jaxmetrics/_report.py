@@ -181,6 +181,10 @@ class RecordBuilder:
         scalars.update(timers)
         return Record(step, wall_time, scalars, hists, windows)
 
+    def start(self, wall_time: float, totals: Mapping[str, int]) -> None:
+        """Counts rates from these counter totals at `wall_time` (a resumed run's)."""
+        self._prev = (wall_time, dict(totals))
+
     def _sparse(self, scalars: dict[str, float | int], tag: str, n: int) -> None:
         # Zero counts of rare events are written only once the event has happened.
         if n or tag in self._seen_nonzero:

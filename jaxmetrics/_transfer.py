@@ -84,6 +84,13 @@ class Packer:
         "serves one Metrics spec (and one include_running setting)."
     )
 
+    def totals(self, counts: Any, runs: int) -> list[dict[str, int]]:
+        """Host: per run, every scalar count (the counters' totals among them) from packed
+        counts of shape `[runs, 2, K]` (or `[2, K]` for one run)."""
+        c = np.reshape(np.asarray(counts), (runs, 2, -1))
+        tags = [s.tag for s in self._layout if s.is_count and s.shape == ()]
+        return [self.unpack(None, c[r], tags) for r in range(runs)]
+
     def any_nonzero(self, counts: np.ndarray, tags: Iterable[str]) -> bool:
         """Host: whether any of the count `tags` is non-zero in one element's counts."""
         wanted = set(tags)
