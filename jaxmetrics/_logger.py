@@ -99,6 +99,61 @@ class WriterTimeoutError(WriterError, TimeoutError):
     is stuck, and nothing queued behind the call is written until it returns."""
 
 
+def _programs(metrics: Metrics, runs: int, include_running: bool) -> tuple[Packer, Any, Any]:
+    """The packer, the in-graph `compute` (state -> packed report) and the jitted flush
+    programs (per mesh and layout) of a spec, `runs` and `include_running`.
+
+    Kept on the spec (they live as long as it does): its loggers share them, so a new
+    Logger of a spec compiles nothing new."""
+    key = (runs, include_running)
+    cached = vars(metrics).setdefault("_logger_programs", {})
+    if key in cached:
+        return cached[key]
+
+    def report(state):
+        return metrics.compute(state, include_running=include_running)
+
+    # The layout of the packed report, from shapes alone: the host side works before
+    # (and without) any trace of the flush.
+    shapes = jax.eval_shape(lambda: report(metrics.init(1)))
+    order = [i.tag for i in _tag_table(metrics, include_running) if i.tag in shapes]
+    packer = Packer(shapes, order, metrics.dtype)
+
+    def compute(state):
+        return packer.pack(report(state))
+
+    def compute_reset(state):
+        new = metrics.reset_period(state)
+        return compute(state), new.finished, new.logged
+
+    batched = compute_reset if runs == 1 else jax.vmap(compute_reset)
+
+    def flush_fn(mesh: jax.sharding.Mesh | None, layout: Any) -> Callable[..., Any]:
+        # On a sharded state's mesh: the packed report whole on every device, so that
+        # every process can read its copy (O(metrics) bytes cross devices), and the
+        # reset statistics split as they came in, so the next steps stay shard-local.
+        def run(state):
+            packed, finished, logged = batched(state)
+            if mesh is None:
+                return packed, finished, logged
+            return replicated(packed, mesh), placed(finished, layout.finished), logged
+
+        return jax.jit(run)
+
+    cached[key] = (packer, compute, functools.cache(flush_fn))
+    return cached[key]
+
+
+def _tag_table(metrics: Metrics, include_running: bool) -> tuple[TagInfo, ...]:
+    """The logger's static tags: the spec's, running values on request, derived ones."""
+    running = [
+        _tags.info(metrics.prefixes["episode"], "episode", name, "running")
+        for name, spec in metrics.metric_specs.items()
+        if include_running and spec.reduce is not None
+    ]
+    return metrics.tags + tuple(running) + tuple(derived_tags(metrics.tags))
+
+
 # Loggers not yet closed, closed together at interpreter exit (in creation order).
 _OPEN: dict[int, "Logger"] = {}
 
@@ -256,14 +311,7 @@ class Logger(AbstractContextManager):
             )
         self.metrics = metrics
         self.runs = int(runs)
-        running = [
-            _tags.info(metrics.prefixes["episode"], "episode", name, "running")
-            for name, spec in metrics.metric_specs.items()
-            if include_running and spec.reduce is not None
-        ]
-        self.tags: tuple[TagInfo, ...] = (
-            metrics.tags + tuple(running) + tuple(derived_tags(metrics.tags))
-        )
+        self.tags: tuple[TagInfo, ...] = _tag_table(metrics, include_running)
         _tags.check_unique((i.tag, _tags.origin(i)) for i in self.tags)
         self._timer_prefix = timer_prefix
         self._timer_tags: set[str] = set()
@@ -279,37 +327,7 @@ class Logger(AbstractContextManager):
         self._builders = [RecordBuilder(edges) for _ in range(self.runs)]
         self._nonfinite_tags = [i.tag for i in metrics.tags if i.stat == "nonfinite"]
 
-        def report(state):
-            return metrics.compute(state, include_running=include_running)
-
-        # The layout of the packed report, from shapes alone: the host side works before
-        # (and without) any trace of the flush.
-        shapes = jax.eval_shape(lambda: report(metrics.init(1)))
-        order = [i.tag for i in self.tags if i.tag in shapes]
-        self._packer = Packer(shapes, order, metrics.dtype)
-
-        def compute(state):
-            return self._packer.pack(report(state))
-
-        def compute_reset(state):
-            new = metrics.reset_period(state)
-            return compute(state), new.finished, new.logged
-
-        batched = compute_reset if runs == 1 else jax.vmap(compute_reset)
-
-        def flush_fn(mesh: jax.sharding.Mesh | None, layout: Any) -> Callable[..., Any]:
-            # On a sharded state's mesh: the packed report whole on every device, so that
-            # every process can read its copy (O(metrics) bytes cross devices), and the
-            # reset statistics split as they came in, so the next steps stay shard-local.
-            def run(state):
-                packed, finished, logged = batched(state)
-                if mesh is None:
-                    return packed, finished, logged
-                return replicated(packed, mesh), placed(finished, layout.finished), logged
-
-            return jax.jit(run)
-
-        self._flush_fns = functools.cache(flush_fn)
+        self._packer, compute, self._flush_fns = _programs(metrics, runs, include_running)
         self._emit = InGraphEmit(compute, metrics.reset_period, self._on_emit)
         self._timers = Timers()
         self._timeout = None if timeout is None else float(timeout)

@@ -170,9 +170,10 @@ class TensorBoardWriter:
         )
         # tensorboardX's SummaryWriter hands events to a background queue that its flush()
         # does not drain; events here go to disk synchronously, fsync'ed, whole or not at
-        # all. The suffix keeps two writers opened in the same second apart.
+        # all. TensorBoard reads a run's files in name order: the time in nanoseconds puts
+        # a resumed run's file (and its purge) after the earlier ones of the same second.
         name = (
-            f"events.out.tfevents.{int(time.time())}.{socket.gethostname()}."
+            f"events.out.tfevents.{time.time_ns()}.{socket.gethostname()}."
             f"{os.getpid()}.{uuid.uuid4().hex[:8]}"
         )
         try:
