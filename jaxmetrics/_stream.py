@@ -56,7 +56,8 @@ class StreamState(NamedTuple):
     min: jax.Array  # [R] float, +inf when empty
     max: jax.Array  # [R] float, -inf when empty
     nonfinite: Count  # [R] uint32 pair: non-finite values left out in this period
-    ema: jax.Array  # [R_ema] float
+    ema: jax.Array  # [R_ema] float: the EMA minus `ema_off`
+    ema_off: jax.Array  # [R_ema] float: offset fixed when the EMA is seeded
     ema_w: jax.Array  # [R_ema] float: 0 unseeded, else number of merged seeded workers
     ema_n: jax.Array  # [R_ema] int32: values the EMA has seen (saturates at 2^31 - 1)
     ema_rings: tuple[Ring, ...]  # one per EmaGroup: the newest values, for exact merges
@@ -183,6 +184,7 @@ def init(plan: StreamPlan, ema_history: bool = False) -> StreamState:
         max=jnp.full((r,), -jnp.inf, dt),
         nonfinite=_count.zeros((r,)),
         ema=jnp.zeros((e,), dt),
+        ema_off=jnp.zeros((e,), dt),
         ema_w=jnp.zeros((e,), dt),
         ema_n=jnp.zeros((e,), jnp.int32),
         ema_rings=tuple(
@@ -225,12 +227,12 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
 
     kf = k.astype(wt)
     na = _count.as_float(s.count, wt)
-    mb = s1 / jnp.maximum(kf, 1).astype(dt)
+    mb = s1 / jnp.maximum(kf, 1).astype(dt)  # the batch's mean minus the shift
     m2b = jnp.maximum(s2 - s1 * mb, 0)
     n = na + kf
     frac = jnp.where(n > 0, kf / jnp.maximum(n, 1), 0)
-    # With history, shift == s.mean and mb is the Chan delta; without, the new mean is
-    # shift + mb (frac == 1) and the old mean carries no weight (na == 0).
+    # With values in the period, shift == s.mean and mb is Chan's delta; without, the new
+    # mean is shift + mb (frac == 1) and the old mean carries no weight (na == 0).
     mean = shift + mb * frac.astype(dt)
     m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + mb * mb * (na * frac).astype(dt))
     total, total_c = kahan_add(s.sum, s.sum_c, bsum)
@@ -244,12 +246,14 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     ranked = plan.ranked_rows
     rank = jnp.cumsum(_take(ranked, mask), axis=1, dtype=jnp.int32) - 1 if ranked else None
     at = {row: i for i, row in enumerate(ranked)}
-    ema, ema_w, ema_n = s.ema, s.ema_w, s.ema_n
+    ema, ema_off, ema_w, ema_n = s.ema, s.ema_off, s.ema_w, s.ema_n
     ema_rings = s.ema_rings
     if plan.ema_rows:
         sub = tuple(at[r] for r in plan.ema_rows)
         ek = _take(plan.ema_rows, k)
-        ema, ema_w = _ema_add(plan, s, values, mask, _take(sub, rank), ek)
+        ema, ema_off, ema_w = _ema_add(
+            plan, s, values, mask, _take(sub, rank), ek, _take(plan.ema_rows, shift)
+        )
         ema_n = ema_n + jnp.minimum(ek, _INT32_MAX - ema_n)
         ema_rings = tuple(
             ring
@@ -289,6 +293,7 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
         min=vmin,
         max=vmax,
         ema=ema,
+        ema_off=ema_off,
         ema_w=ema_w,
         ema_n=ema_n,
         ema_rings=ema_rings,
@@ -301,35 +306,45 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
 _INT32_MAX = np.int32(np.iinfo(np.int32).max)
 
 
-def _ema_add(plan: StreamPlan, s: StreamState, values, mask, r, k):
+def _ema_add(plan: StreamPlan, s: StreamState, values, mask, r, k, shift):
     # Sequential EMA over the k arrivals in closed form: value with rank r gets weight
     # c(1-c)^(k-1-r); the old EMA gets (1-c)^k. Unseeded, the first arrival seeds it
-    # (weight (1-c)^(k-1)) and the old EMA gets none.
+    # (weight (1-c)^(k-1)) and the old EMA gets none. The EMA is kept relative to an
+    # offset fixed at seeding (the moments' shift: the period's mean or the batch's): a
+    # float32 EMA
+    # of values far from zero otherwise loses the low bits of every update and drifts.
     v = _take(plan.ema_rows, values)
     m = _take(plan.ema_rows, mask)
     dt = plan.dtype
     c = jnp.asarray(plan.ema_coeffs, dt)[:, None]
+    seeded = s.ema_w > 0
+    off = jnp.where(seeded, s.ema_off, shift)
     decay = jnp.power(1 - c, (k[:, None] - 1 - r).astype(dt))
-    seeded = (s.ema_w > 0)[:, None]
-    w = jnp.where(seeded | (r > 0), c * decay, decay)
-    new = jnp.sum(jnp.where(m, w * v, 0), axis=1)
+    w = jnp.where(seeded[:, None] | (r > 0), c * decay, decay)
+    new = jnp.sum(jnp.where(m, w * (v - off[:, None]), 0), axis=1)
     keep = jnp.power(1 - c[:, 0], k.astype(dt))
-    ema = jnp.where(seeded[:, 0], keep * s.ema, 0) + new
-    ema = jnp.where(k > 0, ema, s.ema)
-    ema_w = jnp.where((s.ema_w == 0) & (k > 0), jnp.ones_like(s.ema_w), s.ema_w)
-    return ema, ema_w
+    ema = jnp.where(seeded, keep * s.ema, 0) + new
+    some = k > 0
+    ema = jnp.where(some, ema, s.ema)
+    ema_off = jnp.where(some, off, s.ema_off)
+    ema_w = jnp.where(~seeded & some, jnp.ones_like(s.ema_w), s.ema_w)
+    return ema, ema_off, ema_w
 
 
 def _ring_add(w: Ring, step: jax.Array, values, mask, r, k) -> Ring:
-    # Only the last `size` arrivals survive; they go to consecutive ring slots in order.
+    # Only the last `size` arrivals survive; they go to consecutive ring slots in order,
+    # so the slots written on this step are the `stored` ones from `pos` on: the values
+    # need a scatter, their stamps only a select.
     n = w.buf.shape[1]
     skip = jnp.maximum(k - n, 0)[:, None]
     keep = mask & (r >= skip)
     slot = jnp.where(keep, (w.pos[:, None] + r - skip) % n, n)  # n = out of bounds: dropped
     rows = jnp.broadcast_to(jnp.arange(values.shape[0], dtype=jnp.int32)[:, None], slot.shape)
     buf = w.buf.at[rows, slot].set(values, mode="drop")
-    stamp = w.stamp.at[rows, slot].set(jnp.broadcast_to(step, slot.shape), mode="drop")
     stored = jnp.minimum(k, n)
+    j = jnp.arange(n, dtype=jnp.int32)[None, :]
+    written = (j - w.pos[:, None]) % n < stored[:, None]
+    stamp = jnp.where(written, step, w.stamp)
     return Ring(buf, stamp, (w.pos + stored) % n, jnp.minimum(w.filled + stored, n))
 
 
@@ -372,6 +387,7 @@ def reset_period(plan: StreamPlan, s: StreamState) -> StreamState:
     fresh = init(plan)
     return fresh._replace(
         ema=s.ema,
+        ema_off=s.ema_off,
         ema_w=s.ema_w,
         ema_n=s.ema_n,
         ema_rings=s.ema_rings,
@@ -425,12 +441,17 @@ def _newest(vals, age, valid, size: int, steps: jax.Array) -> Ring:
 
 
 def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
-    """EMA of both workers' values in arrival order (see `EmaGroup`)."""
+    """EMA of both workers' values in arrival order (see `EmaGroup`), relative to `a`'s
+    offset (`b`'s where `a` has no value)."""
     dt = plan.dtype
+    off = jnp.where(a.ema_n == 0, b.ema_off, a.ema_off)
     wsum = a.ema_w + b.ema_w
-    # Estimate of the EMA before the newest values; it weighs (1-c)^history at most.
+    # Estimate of the EMA before the newest values, minus `off`; it weighs
+    # (1-c)^history at most.
+    rel_a = a.ema + (a.ema_off - off)
+    rel_b = b.ema + (b.ema_off - off)
     tail = jnp.where(
-        wsum > 0, (a.ema_w * a.ema + b.ema_w * b.ema) / jnp.maximum(wsum, 1), jnp.zeros_like(a.ema)
+        wsum > 0, (a.ema_w * rel_a + b.ema_w * rel_b) / jnp.maximum(wsum, 1), jnp.zeros_like(a.ema)
     )
     n = a.ema_n + jnp.minimum(b.ema_n, _INT32_MAX - a.ema_n)
     parts, rings = [], []
@@ -447,7 +468,8 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
         decay = jnp.power(1 - c, p.astype(dt))
         seed = exact[:, None] & (p == folded - 1)
         w = jnp.where(seed, decay, c * decay)
-        new = jnp.sum(jnp.where(valid & (p < folded), w * vals, 0), axis=1)
+        dev = vals - off[rows][:, None]
+        new = jnp.sum(jnp.where(valid & (p < folded), w * dev, 0), axis=1)
         keep = jnp.where(exact, 0, jnp.power(1 - c, folded[:, 0].astype(dt)) * tail[rows])
         parts.append((g.rows, keep + new))
         rings.append(_newest(vals, age, valid, size, a.steps))
@@ -455,7 +477,7 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
     for rows, v in parts:
         ema = ema.at[jnp.asarray(rows, jnp.int32)].set(v)
     ema = jnp.where(a.ema_n == 0, b.ema, jnp.where(b.ema_n == 0, a.ema, ema))
-    return ema, wsum, n, tuple(rings)
+    return ema, off, wsum, n, tuple(rings)
 
 
 def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
@@ -475,7 +497,7 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
     m2, m2_c = kahan_add(m2, m2_c, -b.m2_c)
     total, total_c = kahan_add(a.sum, a.sum_c, b.sum)
     total, total_c = kahan_add(total, total_c, -b.sum_c)
-    ema, ema_w, ema_n, ema_rings = _merge_ema(plan, a, b)
+    ema, ema_off, ema_w, ema_n, ema_rings = _merge_ema(plan, a, b)
     windows = tuple(
         _newest(*_union(wa, a.steps, wb, b.steps), wa.buf.shape[1], a.steps)
         for wa, wb in zip(a.windows, b.windows)
@@ -491,6 +513,7 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
         max=jnp.maximum(a.max, b.max),
         nonfinite=_count.merge(a.nonfinite, b.nonfinite),
         ema=ema,
+        ema_off=ema_off,
         ema_w=ema_w,
         ema_n=ema_n,
         ema_rings=ema_rings,
@@ -575,7 +598,7 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
         for i in range(len(plan.rows))
     ]
     for j, i in enumerate(plan.ema_rows):
-        out[i]["ema"] = jnp.where(s.ema_w[j] > 0, s.ema[j], jnp.nan)
+        out[i]["ema"] = jnp.where(s.ema_w[j] > 0, s.ema_off[j] + s.ema[j], jnp.nan)
     for g, w in zip(plan.windows, s.windows):
         vals, _, valid = _ordered(w, s.steps)
         filled = w.filled
