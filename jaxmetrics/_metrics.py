@@ -361,6 +361,43 @@ class Metrics:
             spec=self._spec,
         )
 
+    @staticmethod
+    def to_checkpoint(state: MetricsState) -> MetricsState:
+        """The state with its zero-size arrays (statistics the spec does not keep) set to
+        None, for orbax-checkpoint, which refuses to save zero-size arrays. Restore
+        with `from_checkpoint`. flax.serialization takes the state as it is.
+
+        Examples:
+          >>> import orbax.checkpoint as ocp, tempfile, jaxmetrics as jm
+          >>> metrics = jm.Metrics(logged=["loss"])
+          >>> state = metrics.log(metrics.init(0), {"loss": 2.0})
+          >>> path = tempfile.mkdtemp() + "/ckpt"
+          >>> with ocp.StandardCheckpointer() as ckpt:
+          ...     ckpt.save(path, metrics.to_checkpoint(state))
+          ...     ckpt.wait_until_finished()
+          ...     target = metrics.to_checkpoint(metrics.init(0))
+          ...     restored = metrics.from_checkpoint(ckpt.restore(path, target), metrics.init(0))
+          >>> metrics.to_host(metrics.compute(restored))["Train/loss"]
+          2.0
+        """
+        return jax.tree.map(lambda x: None if x.size == 0 else x, state)
+
+    def from_checkpoint(self, saved: MetricsState, target: MetricsState) -> MetricsState:
+        """A state restored from `to_checkpoint`'s tree: its None leaves become `target`'s
+        zero-size arrays (`target`: `init` with the same `num_envs` and sharding)."""
+        target = self._check_state(target, "from_checkpoint")
+        kept = jax.tree.leaves(saved)
+        it = iter(kept)
+        leaves = [x if x.size == 0 else next(it) for x in jax.tree.leaves(target)]
+        if next(it, None) is not None or len(leaves) != len(jax.tree.leaves(target)):
+            raise ValueError(
+                "from_checkpoint: the saved tree does not match `target`; pass init() of the "
+                "spec, num_envs and sharding the checkpoint was made with."
+            )
+        return self._check_state(
+            jax.tree.unflatten(jax.tree.structure(target), leaves), "from_checkpoint"
+        )
+
     def empty(self) -> MetricsState:
         """The identity of `merge`: a state of zero envs with nothing recorded."""
         return self.init(0)
@@ -371,7 +408,7 @@ class Metrics:
                 f"{fn}: expected a MetricsState from this spec's init(), got "
                 f"{type(state).__name__}."
             )
-        if type(state.spec) is not type(self._spec):
+        if getattr(state.spec, "_fields", None) != self._spec._fields:
             raise ValueError(
                 f"{fn}: this state was built by a different Metrics spec (other terms, "
                 "logged values, counters, statistics, prefixes or dtype). Call init() on the "

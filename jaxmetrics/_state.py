@@ -28,15 +28,14 @@ class MetricsState(NamedTuple):
 
 @functools.cache
 def spec_id(fingerprint: str) -> tuple:
-    """The identity of the spec with this configuration fingerprint: an instance of a
-    field-less namedtuple type made for it.
+    """The identity of the spec with this configuration fingerprint: a namedtuple whose
+    one field is named after the fingerprint and holds None.
 
-    It holds no leaves, so it costs nothing and is carried wherever the tree structure
+    It holds no leaves, so it costs nothing, and it goes wherever the tree structure
     goes: through `jit`, `scan` and `vmap` (a state of another spec is told apart at
-    trace time) and through flax.serialization and orbax checkpoints (restored from the
-    target state, as every namedtuple is). Specs with the same configuration share it,
-    so a state checkpointed by one process is accepted by the same spec built in another.
+    trace time), and into flax.serialization and orbax checkpoints, which store the
+    field name and refuse to restore it into a state of another spec. Specs built with
+    the same configuration share it, so a state checkpointed by one process restores
+    into the same spec built in another.
     """
-    kind = collections.namedtuple(f"MetricsSpec_{fingerprint[:12]}", [])
-    kind.fingerprint = fingerprint  # type: ignore[attr-defined]
-    return kind()
+    return collections.namedtuple("MetricsSpec", [f"config_{fingerprint[:24]}"])(None)
