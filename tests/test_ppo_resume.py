@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from tensorboard.backend.event_processing import event_accumulator
 
+from jaxmetrics.examples import ppo
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SPI = 8 * 16  # env steps per iteration: --num-envs x --unroll-length
 ITERATIONS = 12
@@ -101,8 +103,9 @@ def rate(tag):
 @pytest.mark.slow
 def test_a_killed_and_resumed_run_writes_the_records_of_an_uninterrupted_run(tmp_path):
     whole, cut = str(tmp_path / "whole"), str(tmp_path / "cut")
-    finish(start(whole))
+    reference = start(whole)  # side by side with the run to kill
     ckpt, written = kill_past_a_checkpoint(start(cut), cut)
+    finish(reference)
     assert ckpt < ITERATIONS * SPI
     finish(start(cut, "--resume"))
 
@@ -139,3 +142,17 @@ def test_a_killed_and_resumed_run_writes_the_records_of_an_uninterrupted_run(tmp
                 )
         for tag, events in want_h.items():
             assert got_h[tag] == events, f"seed {seed} {tag}"
+
+    # A checkpoint is only resumed by the run that wrote it: other settings are named, and
+    # refused before any writer could purge a record.
+    other = ppo.PPOConfig(
+        num_envs=8,
+        unroll_length=16,
+        episode_length=10,
+        total_steps=2 * ITERATIONS * SPI,
+        update_epochs=2,
+        num_minibatches=2,
+    )
+    with pytest.raises(ValueError, match=r"settings \(total_steps: 1536 then, 3072 now\)"):
+        ppo.train(other, cut, seeds=(0, 3), resume=True, progress=False)
+    assert [r["step"] for r in jsonl_records(cut, SEEDS[0])] == steps

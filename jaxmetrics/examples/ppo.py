@@ -12,6 +12,10 @@ the env folds episode terms into it on every step (return, length, Brax's reward
 components, joint velocity, control effort), and the learner logs its values into the
 same state with `Metrics.log` after each update.
 
+In host mode the run checkpoints its whole carry with orbax-checkpoint, and a killed run
+continues with `--resume`, writing exactly the records of an uninterrupted run (see
+`train`).
+
 Run `python -m jaxmetrics.examples.ppo --help`.
 """
 
@@ -833,7 +837,8 @@ def train(
     try:
         restored, done = None, 0
         if checkpoints is not None and resume:
-            restored = checkpoints.restore(_init_states(ppo, keys, runs))
+            step = checkpoints.newest()
+            restored = checkpoints.restore(step, _init_states(ppo, keys, runs))
             done = min(int(np.max(jax.device_get(restored.iteration))), n)
         # A resumed run's first record is at `(done + 1) * spi`: the writers drop what a
         # killed run wrote from there on, so that those steps are not drawn twice.
@@ -909,8 +914,8 @@ class _Checkpoints:
             ),
         )
 
-    def restore(self, target: TrainState) -> TrainState:
-        """The newest checkpoint, restored into arrays shaped and placed like `target`."""
+    def newest(self) -> int:
+        """The newest checkpoint's step, once its run's settings are checked."""
         ocp = self._ocp
         step = self._manager.latest_step()
         if step is None:
@@ -925,6 +930,11 @@ class _Checkpoints:
                 f"other settings ({shown}). Resume with the same settings, or start a new run "
                 "in another directory."
             )
+        return step
+
+    def restore(self, step: int, target: TrainState) -> TrainState:
+        """The checkpoint of `step`, restored into arrays shaped and placed like `target`."""
+        ocp = self._ocp
         restored = self._manager.restore(
             step,
             args=ocp.args.Composite(state=ocp.args.StandardRestore(_without_empty(target))),
@@ -1131,7 +1141,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"  {d}")
     print(f"Open them with:\n  tensorboard --logdir {log_dir}")
     if every:
-        print(f"Checkpoints: {checkpoint_dir} (continue with --resume --log-dir {log_dir})")
+        print(
+            f"Checkpoints: {checkpoint_dir}; a killed run continues with the same command "
+            f"and --resume --log-dir {log_dir}"
+        )
     return 0
 
 
