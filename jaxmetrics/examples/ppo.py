@@ -839,7 +839,7 @@ def train(
         if checkpoints is not None and resume:
             step = checkpoints.newest()
             restored = checkpoints.restore(step, _init_states(ppo, keys, runs))
-            done = min(int(np.max(jax.device_get(restored.iteration))), n)
+            done = int(np.max(jax.device_get(restored.iteration)))
         # A resumed run's first record is at `(done + 1) * spi`: the writers drop what a
         # killed run wrote from there on, so that those steps are not drawn twice.
         purge = (done + 1) * spi if resume else None
@@ -983,7 +983,7 @@ def _train_host(
     state: TrainState,
     done: int,
     n: int,
-    checkpoints: "_Checkpoints | None",
+    checkpoints: _Checkpoints | None,
     every: int,
 ) -> TrainState:
     spi = ppo.config.steps_per_iteration
