@@ -262,6 +262,19 @@ def test_mlflow_writer_rejects_bad_options_at_creation(tmp_path):
         jm.MLflowWriter(tracking_uri="nope://x")
 
 
+def test_mlflow_store_errors_surface_on_the_callers_thread(tmp_path):
+    from mlflow.tracking import MlflowClient
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    metrics = jm.Metrics(logged=["x"])
+    writer = jm.MLflowWriter("exp", tracking_uri=uri)
+    logger = jm.Logger(metrics, [writer])
+    MlflowClient(uri).delete_run(writer.run_id)  # MLflow refuses metrics of a deleted run
+    logger.flush(metrics.log(metrics.init(1), {"x": jnp.float32(1.0)}), 5)
+    with pytest.raises(RuntimeError, match=r"writer <.*MLflowWriter.* of run 0 failed at step 5"):
+        logger.close()
+
+
 # ---------------------------------------------------------------- both
 
 
