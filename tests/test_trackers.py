@@ -260,6 +260,10 @@ def test_mlflow_writer_rejects_bad_options_at_creation(tmp_path):
         jm.MLflowWriter("")
     with pytest.raises(ValueError, match="cannot use the MLflow tracking store 'nope://x'"):
         jm.MLflowWriter(tracking_uri="nope://x")
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(ValueError, match=r"tracking store 'sqlite:///.*/file/m.db': FileExists"):
+        jm.MLflowWriter(tracking_uri=f"sqlite:///{blocker}/m.db")
 
 
 def test_mlflow_store_errors_surface_on_the_callers_thread(tmp_path):

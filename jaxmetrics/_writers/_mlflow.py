@@ -206,15 +206,15 @@ class MLflowWriter:
 
 def _experiment(name: str, tracking_uri: str | None, who: str) -> tuple[Any, str]:
     """The client and the id of experiment `name` (created if missing)."""
-    from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
 
     try:
         client = MlflowClient(tracking_uri)
         found = client.get_experiment_by_name(name)
         return client, found.experiment_id if found else client.create_experiment(name)
-    except MlflowException as e:
+    except Exception as e:  # noqa: BLE001 (MLflow's, SQLAlchemy's or the OS's, all re-raised)
         raise ValueError(
-            f"{who}: cannot use the MLflow tracking store {tracking_uri!r}: {e.message} "
-            "Pass a reachable, writable tracking_uri (e.g. 'sqlite:///mlflow.db')."
-        ) from None
+            f"{who}: cannot use the MLflow tracking store {tracking_uri!r}: "
+            f"{type(e).__name__}: {e}. Pass a reachable, writable tracking_uri (e.g. "
+            "'sqlite:///mlflow.db')."
+        ) from e
