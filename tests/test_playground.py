@@ -26,6 +26,7 @@ REPEAT = 2
 EPISODE_LENGTH = 9  # sub-steps: episodes of 5 env steps (10 sub-steps, Brax's units)
 STATS = ("mean", "count", jm.window(64))
 COMPONENTS = ("reward/upright", "reward/centered")
+BRAX_INFO = ("done", "steps", "truncation")  # what `rollout` records, per env step
 
 
 def load_env():
@@ -165,9 +166,6 @@ def test_episode_values_fold_every_sub_step_and_match_a_float64_unroll(rolled):
 def test_playground_info_keys_are_those_of_wrap_for_brax_training(rolled):
     for ours, theirs, name in zip(rolled["ours_info"], rolled["theirs_info"], BRAX_INFO):
         np.testing.assert_array_equal(ours, theirs, err_msg=name)
-
-
-BRAX_INFO = ("done", "steps", "truncation")
 
 
 def test_wrap_rejects_what_it_cannot_wrap():

@@ -283,9 +283,10 @@ def test_mlflow_store_errors_surface_on_the_callers_thread(tmp_path):
 
 
 def test_backends_are_imported_only_when_their_writer_is_created(tmp_path):
+    # (and `import jaxmetrics` never imports MuJoCo Playground)
     code = (
         "import sys, jaxmetrics as jm\n"
-        "seen = lambda: [m for m in ('wandb', 'mlflow') if m in sys.modules]\n"
+        "seen = lambda: [m for m in ('wandb', 'mlflow', 'mujoco_playground') if m in sys.modules]\n"
         "print(seen())\n"
         f"jm.WandbWriter('p', mode='disabled', dir={str(tmp_path)!r})\n"
         "print(seen())\n"
