@@ -21,7 +21,7 @@ def _check_str(value: Any, name: str) -> None:
         raise TypeError(f"WandbWriter: {name} must be a non-empty string, got {value!r}.")
 
 
-def coarsen(counts: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _coarsen(counts: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`(counts, edges)` in at most `MAX_BINS` bins: runs of `ceil(bins / MAX_BINS)`
     adjacent bins summed (the last run may be shorter), on a subset of the same edges."""
     k = -(-counts.size // MAX_BINS)
@@ -184,7 +184,7 @@ class WandbWriter:
         Histogram = self._wandb.Histogram
         row: dict[str, Any] = dict(record.scalars)
         for tag, h in record.histograms.items():
-            row[tag] = Histogram(np_histogram=coarsen(h.counts, h.edges))
+            row[tag] = Histogram(np_histogram=_coarsen(h.counts, h.edges))
         for tag, w in record.windows.items():
             row[tag] = Histogram(np_histogram=np.histogram(w, bins=self._bins))
         self.run.log(row, step=record.step)
