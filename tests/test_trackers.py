@@ -224,7 +224,11 @@ def mlflow_runs(mlflow_uri):
     from mlflow.tracking import MlflowClient
 
     uri = mlflow_uri
-    _log_runs(jm.MLflowWriter.per_seed("exp", run_name="ppo", tracking_uri=uri, hparams=HPARAMS))
+    _log_runs(
+        jm.MLflowWriter.per_seed(
+            "exp", run_name="ppo", tracking_uri=uri, hparams=HPARAMS, tags={"team": "rl"}
+        )
+    )
     client = MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("exp").experiment_id])
     return client, {r.info.run_name: r for r in runs}
@@ -238,6 +242,7 @@ def test_mlflow_seeds_are_child_runs_of_one_finished_parent_with_params(mlflow_r
     for name, run in runs.items():
         assert run.info.status == "FINISHED"
         assert run.data.params == want
+        assert run.data.tags["team"] == "rl"
         assert run.data.tags.get("mlflow.parentRunId") == (None if name == "ppo" else parent)
 
 

@@ -32,13 +32,30 @@ def _check_hparams(hparams: Any, who: str) -> dict[str, str]:
     return {k: str(v) for k, v in hparams.items()}
 
 
+def _check_tags(tags: Any, who: str) -> dict[str, str]:
+    if tags is None:
+        return {}
+    if not isinstance(tags, Mapping) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in tags.items()
+    ):
+        raise TypeError(f"{who}: tags must be a dict of strings, got {tags!r}.")
+    return dict(tags)
+
+
 class _Parent:
     """The parent run of `MLflowWriter.per_seed`'s children: created with the first
     child, finished when the last child closes."""
 
-    def __init__(self, client: Any, experiment_id: str, run_name: str, params: dict[str, str]):
+    def __init__(
+        self,
+        client: Any,
+        experiment_id: str,
+        run_name: str,
+        params: dict[str, str],
+        tags: dict[str, str],
+    ):
         self._client, self._experiment_id = client, experiment_id
-        self._run_name, self._params = run_name, params
+        self._run_name, self._params, self._tags = run_name, params, tags
         self._lock = threading.Lock()
         self._open = 0
         self.run_id: str | None = None
@@ -46,7 +63,9 @@ class _Parent:
     def acquire(self) -> str:
         with self._lock:
             if self.run_id is None:
-                run = self._client.create_run(self._experiment_id, run_name=self._run_name)
+                run = self._client.create_run(
+                    self._experiment_id, run_name=self._run_name, tags=self._tags
+                )
                 self.run_id = run.info.run_id
                 _log_params(self._client, self.run_id, self._params)
             self._open += 1
@@ -126,14 +145,10 @@ class MLflowWriter:
         if experiment is None:
             raise TypeError(f"{who}: experiment must be a non-empty string, got None.")
         self._params = _check_hparams(hparams, who)
-        if tags is not None and (
-            not isinstance(tags, Mapping)
-            or not all(isinstance(k, str) and isinstance(v, str) for k, v in tags.items())
-        ):
-            raise TypeError(f"{who}: tags must be a dict of strings, got {tags!r}.")
+        tags = _check_tags(tags, who)
         self.client, self.experiment_id = _experiment(experiment, tracking_uri, who)
         self._run_name = run_name
-        self._tags = dict(tags or {})
+        self._tags = tags
         self._parent_run_id = parent_run_id
         self._parent: _Parent | None = None  # set by per_seed
         self.run_id: str | None = None
@@ -147,8 +162,8 @@ class MLflowWriter:
         hparams: Mapping[str, bool | int | float | str] | None = None,
         tags: Mapping[str, str] | None = None,
     ) -> Callable[[int], list["MLflowWriter"]]:
-        """A `Logger(..., runs=N)` writer factory: one parent run `run_name` (with the
-        hparams as params) and, for run i, a child run `<run_name>/seed_<i>`.
+        """A `Logger(..., runs=N)` writer factory: one parent run `run_name` and, for run
+        i, a child run `<run_name>/seed_<i>`; each has the hparams as params and the tags.
 
         The parent is created with the first child's run and finished when the last
         child closes. Arguments as for `MLflowWriter`.
@@ -156,8 +171,9 @@ class MLflowWriter:
         who = "MLflowWriter.per_seed"
         _check_str(run_name, who, "run_name")
         params = _check_hparams(hparams, who)
+        parent_tags = _check_tags(tags, who)
         client, experiment_id = _experiment(experiment, tracking_uri, who)
-        parent = _Parent(client, experiment_id, run_name, params)
+        parent = _Parent(client, experiment_id, run_name, params, parent_tags)
 
         def make(run: int) -> list[MLflowWriter]:
             writer = MLflowWriter(
