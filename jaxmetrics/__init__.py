@@ -27,7 +27,9 @@ from ._wrap_step import wrap_step as wrap_step
 from ._writers import ConsoleWriter as ConsoleWriter
 from ._writers import JsonlWriter as JsonlWriter
 from ._writers import MemoryWriter as MemoryWriter
+from ._writers import MLflowWriter as MLflowWriter
 from ._writers import TensorBoardWriter as TensorBoardWriter
+from ._writers import WandbWriter as WandbWriter
 
 __version__ = "0.1.0"
 
@@ -39,6 +41,7 @@ __all__ = [
     "HistogramData",
     "JsonlWriter",
     "Logged",
+    "MLflowWriter",
     "Logger",
     "MemoryWriter",
     "Metrics",
@@ -49,6 +52,7 @@ __all__ = [
     "TensorBoardWriter",
     "Term",
     "Transition",
+    "WandbWriter",
     "Window",
     "Writer",
     "WriterError",

@@ -1,7 +1,8 @@
 """The package's layout: one owner per concept, and layers that import only downwards.
 
 core (the spec, the state and its in-graph functions, tags, registries) <- host (report ->
-Record, the logger) <- writers <- integrations (jaxmetrics.brax) <- examples. The
+Record, the logger) <- writers <- integrations (jaxmetrics.brax <- jaxmetrics.playground,
+which builds on it) <- examples. The
 registries of statistics and reductions are the only lists of their names; the in-graph
 modules that use the names (`_stream`, `_episode`) are checked against them here.
 """
@@ -35,7 +36,7 @@ CORE = {
     "_wrap_step",
 }
 HOST = {"_emit", "_logger", "_report", "_timer", "_transfer"}
-LAYERS = [CORE, HOST, {"_writers"}, {"brax"}, {"examples", "bench", "__init__"}]
+LAYERS = [CORE, HOST, {"_writers"}, {"brax"}, {"playground"}, {"examples", "bench", "__init__"}]
 # What a writer sees (TagInfo, Record, the registries) must not pull in JAX.
 PURE = {"_reductions", "_report", "_spec", "_statistics", "_tags", "_validate", "_writers"}
 

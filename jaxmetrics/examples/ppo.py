@@ -1,4 +1,5 @@
-"""A jitted PPO on a Brax environment (MJX backend), every metric through jaxmetrics.
+"""A jitted PPO on a Brax environment (MJX backend) or a MuJoCo Playground environment,
+every metric through jaxmetrics.
 
 The algorithm: GAE, the clipped surrogate objective, a value loss, an entropy bonus,
 running observation normalization and minibatch epochs; a Gaussian policy with a
@@ -7,8 +8,9 @@ they reach the env (the log-probability is that of the unclipped sample, as in C
 and PureJaxRL). Truncated episodes are handled as Brax's PPO does: the transition on
 which the time limit cuts an episode carries no advantage and no value error.
 
-One `MetricsState` holds everything: it lives in the env state (`jaxmetrics.brax.wrap`),
-the env folds episode terms into it on every step (return, length, Brax's reward
+One `MetricsState` holds everything: it lives in the env state (`jaxmetrics.brax.wrap`,
+or `jaxmetrics.playground.wrap` for a Playground env name such as `CartpoleBalance`), the
+env folds episode terms into it on every step (return, length, the env's reward
 components, joint velocity, control effort), and the learner logs its values into the
 same state with `Metrics.log` after each update.
 
@@ -66,8 +68,11 @@ class PPOConfig:
     Env steps are counted as Brax counts them: env steps x `action_repeat`.
 
     Attributes:
-      env_name: a Brax environment name (`brax.envs.get_environment`).
-      backend: the Brax physics backend.
+      env_name: a Brax environment name (`brax.envs.get_environment`), or a MuJoCo
+        Playground one (`mujoco_playground.registry`, e.g. "CartpoleBalance"; needs the
+        `playground` extra), run with MJX's JAX implementation and the env's own
+        `ctrl_dt`/`sim_dt`.
+      backend: the Brax physics backend (Brax envs only).
       num_envs: parallel envs per seed.
       unroll_length: env steps per env per iteration.
       total_steps: env steps to train for (rounded up to whole iterations).
@@ -369,8 +374,8 @@ def make_metrics(
         terms.update(jmb.state_metrics(list(reward_components), reduce="sum"))
     if other_state_metrics:
         terms.update(jmb.state_metrics(list(other_state_metrics), reduce="mean"))
-    terms["joint_velocity"] = jmb.joint_velocity(
-        stats=_term_stats(jm.window(100), jm.histogram(20, (0.0, 10.0)))
+    terms["joint_velocity"] = jmb.norm(
+        _qvel, stats=_term_stats(jm.window(100), jm.histogram(20, (0.0, 10.0)))
     )
     terms["control_effort"] = jmb.control_effort(
         stats=_term_stats(jm.window(100), jm.histogram(20, (0.0, float(np.sqrt(action_size)))))
@@ -379,6 +384,12 @@ def make_metrics(
     logged = {name: per_update for name in LEARNER_METRICS}
     logged["explained_variance"] = jm.Logged(stats=("mean",))  # one value per iteration
     return jm.Metrics(terms=terms, logged=logged, counters=("updates",))
+
+
+def _qvel(t: jmb.Transition) -> jax.Array:
+    """The generalized velocity: Playground's `State.data.qvel`, Brax's `pipeline_state.qd`."""
+    data = getattr(t.state, "data", None)
+    return t.state.pipeline_state.qd if data is None else data.qvel
 
 
 class PPO(NamedTuple):
@@ -401,6 +412,30 @@ class PPO(NamedTuple):
     network: ActorCritic
     init: Callable[[jax.Array], TrainState]
     iteration: Callable[[TrainState], TrainState]
+
+
+def _playground_env(name: str) -> tuple[Any, Callable[..., Any]]:
+    """MuJoCo Playground's env `name` (MJX's JAX implementation: Warp's is for NVIDIA
+    GPUs) and its wrap, or a ValueError naming the Brax and Playground envs there are."""
+    # Brax keeps its registry in a private dict; read it only to name the choices.
+    known = f"known: {sorted(getattr(envs, '_envs', {}))}"
+    try:
+        from mujoco_playground import registry
+
+        import jaxmetrics.playground as jmp
+    except ImportError:
+        raise ValueError(
+            f"unknown Brax env {name!r}; {known}. For MuJoCo Playground envs, pip install "
+            "'jaxmetrics[playground]'."
+        ) from None
+    if name not in registry.ALL_ENVS:
+        raise ValueError(
+            f"unknown Brax env {name!r}, nor a MuJoCo Playground env; {known}; Playground's: "
+            f"{sorted(registry.ALL_ENVS)}."
+        )
+    env_config = registry.get_default_config(name)
+    env_config.impl = "jax"
+    return registry.load(name, config=env_config), jmp.wrap
 
 
 def _env_sharding(devices: int) -> NamedSharding | None:
@@ -435,10 +470,9 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
         raise TypeError(f"make_ppo(config=...) must be a PPOConfig, got {type(config).__name__}.")
     try:
         raw_env = envs.get_environment(config.env_name, backend=config.backend)
+        wrap = jmb.wrap
     except KeyError:
-        # Brax keeps its registry in a private dict; read it only to name the choices.
-        known = sorted(getattr(envs, "_envs", {}))
-        raise ValueError(f"unknown Brax env {config.env_name!r}; known: {known}.") from None
+        raw_env, wrap = _playground_env(config.env_name)
     # Brax, MJX and optax (e.g. its `decay ** count`) run under JAX's default promotion
     # whatever the user's config; this file's own code stays strict.
     with jmb.default_promotion():
@@ -457,9 +491,7 @@ def make_ppo(config: PPOConfig = PPOConfig()) -> PPO:
         episode_length=config.episode_length,
     )
     env_sharding = _env_sharding(config.devices)
-    env = jmb.wrap(
-        raw_env, metrics, config.episode_length, config.action_repeat, sharding=env_sharding
-    )
+    env = wrap(raw_env, metrics, config.episode_length, config.action_repeat, sharding=env_sharding)
     network = ActorCritic(action_size, config.hidden_sizes)
     optimizer = optax.chain(
         optax.clip_by_global_norm(config.max_grad_norm), optax.scale_by_adam(eps=1e-5)
@@ -1036,13 +1068,14 @@ def _parser() -> argparse.ArgumentParser:
         prog=_prog(),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description=(
-            "Train PPO on a Brax environment (MJX backend) with every metric logged "
+            "Train PPO on a Brax environment (MJX backend) or a MuJoCo Playground one "
+            "(e.g. --env CartpoleBalance) with every metric logged "
             "through jaxmetrics to TensorBoard. The defaults train inverted_pendulum to "
             "the maximum return (1,000) in under a minute on a 2-core laptop CPU, "
             "compilation included."
         ),
     )
-    p.add_argument("--env", default=d.env_name, help="Brax env name")
+    p.add_argument("--env", default=d.env_name, help="Brax or MuJoCo Playground env name")
     p.add_argument("--backend", default=d.backend, help="Brax physics backend")
     p.add_argument("--num-envs", type=int, default=d.num_envs, help="envs per seed")
     p.add_argument("--steps", type=int, default=d.total_steps, help="env steps per seed")
@@ -1127,8 +1160,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         resume=args.resume,
     )
     steps = config.num_iterations * config.steps_per_iteration
+    brax_env = config.env_name in getattr(envs, "_envs", {})
+    where = config.backend if brax_env else "MuJoCo Playground, MJX"
     print(
-        f"\nTrained {config.env_name} ({config.backend}) for {steps:,} env steps per seed, "
+        f"\nTrained {config.env_name} ({where}) for {steps:,} env steps per seed, "
         f"{len(args.seeds)} seed(s), {args.mode} mode, in {result.seconds:.0f} s "
         "(compilation included)."
     )

@@ -1,0 +1,236 @@
+"""MLflow runs through `MlflowClient` (mlflow imported when the writer is created)."""
+
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+from .. import _tags
+from .._report import Record
+from .._tags import TagInfo
+
+_HPARAM_TYPES = (bool, int, float, str)
+# MLflow's limit on the metrics of one `log_batch` call.
+_BATCH = 1000
+
+
+def _check_str(value: Any, who: str, name: str) -> None:
+    if value is not None and (not isinstance(value, str) or not value):
+        raise TypeError(f"{who}: {name} must be a non-empty string, got {value!r}.")
+
+
+def _check_hparams(hparams: Any, who: str) -> dict[str, str]:
+    if hparams is None:
+        return {}
+    if not isinstance(hparams, Mapping):
+        raise TypeError(f"{who}: hparams must be a dict, got {hparams!r}.")
+    for k, v in hparams.items():
+        if not isinstance(k, str) or not isinstance(v, _HPARAM_TYPES):
+            raise TypeError(
+                f"{who}: hparam {k!r}={v!r}: names must be strings and values bool, int, "
+                "float or str (MLflow params)."
+            )
+    return {k: str(v) for k, v in hparams.items()}
+
+
+def _check_tags(tags: Any, who: str) -> dict[str, str]:
+    if tags is None:
+        return {}
+    if not isinstance(tags, Mapping) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in tags.items()
+    ):
+        raise TypeError(f"{who}: tags must be a dict of strings, got {tags!r}.")
+    return dict(tags)
+
+
+class _Parent:
+    """The parent run of `MLflowWriter.per_seed`'s children: created with the first
+    child, finished when the last child closes."""
+
+    def __init__(
+        self,
+        client: Any,
+        experiment_id: str,
+        run_name: str,
+        params: dict[str, str],
+        tags: dict[str, str],
+    ):
+        self._client, self._experiment_id = client, experiment_id
+        self._run_name, self._params, self._tags = run_name, params, tags
+        self._lock = threading.Lock()
+        self._open = 0
+        self.run_id: str | None = None
+
+    def acquire(self) -> str:
+        with self._lock:
+            if self.run_id is None:
+                run = self._client.create_run(
+                    self._experiment_id, run_name=self._run_name, tags=self._tags
+                )
+                self.run_id = run.info.run_id
+                _log_params(self._client, self.run_id, self._params)
+            self._open += 1
+            return self.run_id
+
+    def release(self) -> None:
+        with self._lock:
+            self._open -= 1
+            if self._open == 0 and self.run_id is not None:
+                self._client.set_terminated(self.run_id)
+
+
+def _log_params(client: Any, run_id: str, params: dict[str, str]) -> None:
+    from mlflow.entities import Param
+
+    if params:
+        client.log_batch(run_id, params=[Param(k, v) for k, v in params.items()])
+
+
+class MLflowWriter:
+    """Writes one MLflow run.
+
+    What it writes, per record (`MlflowClient.log_batch`): every scalar of the record as
+    a metric at `step=record.step` and `timestamp=record.wall_time`, under its tag
+    (TensorBoard-sanitized, which MLflow accepts; the spec already rejects tags that
+    would collide). Empty statistics are not in a record, so nothing is logged as a fake
+    0. MLflow stores metric values as float64: counters past 2^53 show rounded there
+    (they are exact in `JsonlWriter`, `MemoryWriter` and `WandbWriter`). MLflow has no
+    histogram type: histograms and window contents are left out (their statistics and
+    under/overflow counts are scalars and are written).
+
+    `hparams` become the run's params; `tags` its tags. The run is created in `open`
+    (when the `Logger` starts, or at a `ProgressFn`'s first call) and set FINISHED in
+    `close`. For `Logger(runs=N)` (vmapped seeds), `per_seed` makes each seed a child
+    run of one parent run, which is how MLflow's UI groups runs.
+
+    Args:
+      experiment: the experiment's name; created if missing.
+      run_name: the run's name (MLflow makes one up when None).
+      tracking_uri: where runs go, e.g. `"sqlite:///mlflow.db"` or `"http://host:5000"`;
+        None: MLflow's default (`MLFLOW_TRACKING_URI`, or the local SQLite store
+        `mlflow.db` in the working directory). The store is reached here, so a bad URI
+        fails before training.
+      parent_run_id: make this run a child of that run (`mlflow.parentRunId`).
+      hparams: hyperparameters (name -> bool/int/float/str), the run's params.
+      tags: run tags (name -> str).
+
+    Raises:
+      TypeError: arguments of the wrong type.
+      ValueError: a tracking store that cannot be reached or written.
+
+    Examples:
+      One child run per seed under one parent::
+
+          logger = jm.Logger(metrics, jm.MLflowWriter.per_seed("ppo", run_name="ant"),
+                             runs=4)
+    """
+
+    def __init__(
+        self,
+        experiment: str = "jaxmetrics",
+        *,
+        run_name: str | None = None,
+        tracking_uri: str | None = None,
+        parent_run_id: str | None = None,
+        hparams: Mapping[str, bool | int | float | str] | None = None,
+        tags: Mapping[str, str] | None = None,
+    ):
+        who = "MLflowWriter"
+        for name, value in (
+            ("experiment", experiment),
+            ("run_name", run_name),
+            ("tracking_uri", tracking_uri),
+            ("parent_run_id", parent_run_id),
+        ):
+            _check_str(value, who, name)
+        if experiment is None:
+            raise TypeError(f"{who}: experiment must be a non-empty string, got None.")
+        self._params = _check_hparams(hparams, who)
+        tags = _check_tags(tags, who)
+        self.client, self.experiment_id = _experiment(experiment, tracking_uri, who)
+        self._run_name = run_name
+        self._tags = tags
+        self._parent_run_id = parent_run_id
+        self._parent: _Parent | None = None  # set by per_seed
+        self.run_id: str | None = None
+
+    @staticmethod
+    def per_seed(
+        experiment: str = "jaxmetrics",
+        *,
+        run_name: str = "run",
+        tracking_uri: str | None = None,
+        hparams: Mapping[str, bool | int | float | str] | None = None,
+        tags: Mapping[str, str] | None = None,
+    ) -> Callable[[int], list["MLflowWriter"]]:
+        """A `Logger(..., runs=N)` writer factory: one parent run `run_name` and, for run
+        i, a child run `<run_name>/seed_<i>`; each has the hparams as params and the tags.
+
+        The parent is created with the first child's run and finished when the last
+        child closes. Arguments as for `MLflowWriter`.
+        """
+        who = "MLflowWriter.per_seed"
+        _check_str(run_name, who, "run_name")
+        params = _check_hparams(hparams, who)
+        parent_tags = _check_tags(tags, who)
+        client, experiment_id = _experiment(experiment, tracking_uri, who)
+        parent = _Parent(client, experiment_id, run_name, params, parent_tags)
+
+        def make(run: int) -> list[MLflowWriter]:
+            writer = MLflowWriter(
+                experiment,
+                run_name=f"{run_name}/seed_{run}",
+                tracking_uri=tracking_uri,
+                hparams=hparams,
+                tags=tags,
+            )
+            writer._parent = parent
+            return [writer]
+
+        return make
+
+    def open(self, tags: Sequence[TagInfo]) -> None:
+        """Creates the run and logs its params."""
+        run_tags = dict(self._tags)
+        parent = self._parent.acquire() if self._parent is not None else self._parent_run_id
+        if parent is not None:
+            run_tags["mlflow.parentRunId"] = parent
+        run = self.client.create_run(self.experiment_id, run_name=self._run_name, tags=run_tags)
+        self.run_id = run.info.run_id
+        _log_params(self.client, self.run_id, self._params)
+
+    def write(self, record: Record) -> None:
+        """Logs the record's scalars at `record.step`."""
+        from mlflow.entities import Metric
+
+        ms = int(record.wall_time * 1000)
+        metrics = [
+            Metric(_tags.sanitize(tag), float(v), ms, record.step)
+            for tag, v in record.scalars.items()
+        ]
+        for i in range(0, len(metrics), _BATCH):
+            self.client.log_batch(self.run_id, metrics=metrics[i : i + _BATCH])
+
+    def close(self) -> None:
+        """Sets the run FINISHED (if created); with `per_seed`, the parent too once every
+        seed's run is."""
+        if self.run_id is None:
+            return
+        self.client.set_terminated(self.run_id)
+        if self._parent is not None:
+            self._parent.release()
+
+
+def _experiment(name: str, tracking_uri: str | None, who: str) -> tuple[Any, str]:
+    """The client and the id of experiment `name` (created if missing)."""
+    from mlflow.tracking import MlflowClient
+
+    try:
+        client = MlflowClient(tracking_uri)
+        found = client.get_experiment_by_name(name)
+        return client, found.experiment_id if found else client.create_experiment(name)
+    except Exception as e:  # noqa: BLE001 (MLflow's, SQLAlchemy's or the OS's, all re-raised)
+        raise ValueError(
+            f"{who}: cannot use the MLflow tracking store {tracking_uri!r}: "
+            f"{type(e).__name__}: {e}. Pass a reachable, writable tracking_uri (e.g. "
+            "'sqlite:///mlflow.db')."
+        ) from e
