@@ -1,5 +1,6 @@
 """The `Metrics` spec: static configuration plus the pure functions over `MetricsState`."""
 
+import dataclasses
 import hashlib
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -57,6 +58,21 @@ def _as_array(v: Any, what: str) -> jax.Array:
     if not _is_numeric(a.dtype):
         raise TypeError(f"{what}: got dtype {a.dtype}; {fix}.")
     return a
+
+
+def _canonical(x: Any) -> Any:
+    """`x` in a form whose repr is the same in every process: sets sorted (their order
+    follows string hashing, which is salted per process), dataclasses as field tuples."""
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        fields = dataclasses.fields(x)
+        return (type(x).__name__, tuple((f.name, _canonical(getattr(x, f.name))) for f in fields))
+    if isinstance(x, set | frozenset):
+        return ("set", tuple(sorted((_canonical(v) for v in x), key=repr)))
+    if isinstance(x, Mapping):
+        return ("map", tuple(sorted(((k, _canonical(v)) for k, v in x.items()), key=repr)))
+    if isinstance(x, list | tuple):
+        return tuple(_canonical(v) for v in x)
+    return x
 
 
 def _count_overflow(row: dict[str, Any]) -> dict[str, Any]:
@@ -238,7 +254,8 @@ class Metrics:
         _tags.check_unique((i.tag, _tags.origin(i)) for i in infos)
         self.tags: tuple[TagInfo, ...] = tuple(infos)
         config = (self._ep_defined, lg_specs, self.counter_names, self.prefixes, counter_prefix)
-        self._spec = spec_id(hashlib.sha256(repr((config, dt.name)).encode()).hexdigest())
+        canon = repr(_canonical((config, dt.name))).encode()
+        self._spec = spec_id(hashlib.sha256(canon).hexdigest())
 
     # ------------------------------------------------------------------ static views
 

@@ -2,6 +2,10 @@
 fresh process's spec continues exactly as the uninterrupted run: windows, EMA, histograms,
 counters and running episodes carry over bit for bit, sharded or not."""
 
+import os
+import subprocess
+import sys
+
 import flax.serialization
 import jax
 import jax.numpy as jnp
@@ -106,3 +110,22 @@ def test_restoring_into_another_spec_of_the_same_shapes_is_refused(tmp_path):
         ckpt.wait_until_finished()
         with pytest.raises(ValueError, match=r"tree structures do not match"):
             ckpt.restore(tmp_path / "ckpt", b.to_checkpoint(b.init(E)))
+
+
+def test_the_spec_identity_is_the_same_in_every_process():
+    # Sets of statistics iterate in an order salted per process (PYTHONHASHSEED): a
+    # checkpoint written by one process was refused by the next one's identical spec.
+    script = (
+        "import jaxmetrics as jm\n"
+        "m = jm.Metrics(terms={'r': jm.Term(lambda x: x, stats=('mean', 'std', 'min', 'max',"
+        " 'sum', 'count', jm.ema(0.1)))}, logged={'l': jm.Logged(stats=('max', 'mean'))})\n"
+        "print(m.init(2).spec._fields[0])\n"
+    )
+    seen = set()
+    for seed in ("1", "2", "3", "4"):
+        env = dict(os.environ, PYTHONHASHSEED=seed, JAX_PLATFORMS="cpu")
+        out = subprocess.run(
+            [sys.executable, "-c", script], capture_output=True, text=True, env=env, check=True
+        )
+        seen.add(out.stdout.strip().splitlines()[-1])
+    assert len(seen) == 1, seen
