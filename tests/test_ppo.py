@@ -244,6 +244,10 @@ def test_bad_run_arguments_fail_before_any_compile(tmp_path):
         ppo.train(CONFIG, str(tmp_path), seeds=(-1,))
     with pytest.raises(ValueError, match="iterations"):
         ppo.train(CONFIG, str(tmp_path), iterations=CONFIG.num_iterations + 1)
+    with pytest.raises(ValueError, match=r"mode='graph'\) cannot checkpoint or resume"):
+        ppo.train(CONFIG, str(tmp_path), mode="graph", resume=True)
+    with pytest.raises(ValueError, match=r"checkpoint_every=\.\.\.\) must be >= 0"):
+        ppo.train(CONFIG, str(tmp_path), checkpoint_every=-1)
 
 
 @pytest.mark.slow

@@ -14,6 +14,10 @@ env folds episode terms into it on every step (return, length, the env's reward
 components, joint velocity, control effort), and the learner logs its values into the
 same state with `Metrics.log` after each update.
 
+In host mode the run checkpoints its whole carry with orbax-checkpoint, and a killed run
+continues with `--resume`, writing exactly the records of an uninterrupted run (see
+`train`).
+
 Run `python -m jaxmetrics.examples.ppo --help`.
 """
 
@@ -645,6 +649,9 @@ HEADLINE = (
 
 MODES = ("host", "graph")
 
+CHECKPOINT_EVERY = 20
+"""The command line's default for `--checkpoint-every` (host mode), in iterations."""
+
 
 class ProgressWriter:
     """A `jaxmetrics.Writer` that draws a progress bar per run with the headline metrics.
@@ -749,12 +756,21 @@ class RunResult(NamedTuple):
     seconds: float
 
 
-def _hparams(config: PPOConfig, seed: int, mode: str) -> dict[str, bool | int | float | str]:
-    out: dict[str, bool | int | float | str] = {"seed": seed, "mode": mode}
+def _config_values(config: PPOConfig) -> dict[str, bool | int | float | str]:
+    out: dict[str, bool | int | float | str] = {}
     for f in dataclasses.fields(config):
         v = getattr(config, f.name)
         out[f.name] = v if isinstance(v, (bool, int, float, str)) else str(v)
     return out
+
+
+def _hparams(config: PPOConfig, seed: int, mode: str) -> dict[str, bool | int | float | str]:
+    return {"seed": seed, "mode": mode, **_config_values(config)}
+
+
+def _run_settings(config: PPOConfig, seeds: tuple[int, ...]) -> dict[str, Any]:
+    """What a checkpoint records of its run, and a resume must match (JSON)."""
+    return {"config": _config_values(config), "seeds": list(seeds)}
 
 
 def train(
@@ -765,6 +781,10 @@ def train(
     mode: str = "host",
     iterations: int | None = None,
     progress: bool = True,
+    jsonl: bool = False,
+    checkpoint_every: int = 0,
+    checkpoint_dir: str | None = None,
+    resume: bool = False,
 ) -> RunResult:
     """Trains one PPO per seed, writing each seed's metrics to `log_dir/seed_<seed>`.
 
@@ -772,6 +792,17 @@ def train(
     at step = env steps so far (per seed). Both modes write the same tags and, for the
     same seed, the same values (up to float round-off between differently fused
     programs).
+
+    Checkpoints (host mode): every `checkpoint_every` iterations and after the last one,
+    the whole training carry of all seeds (parameters, optimizer state, observation
+    statistics, env states, PRNG keys, the MetricsState as `flush` returned it, the
+    iteration) goes to `checkpoint_dir/<step>` with orbax-checkpoint (the 2 newest are
+    kept), once the records up to that step are written (`Logger.wait`): a checkpoint
+    never exists without its records. `resume=True` restores the newest checkpoint of
+    the same config and seeds and carries on: the writers drop the records a killed run
+    wrote after it (`purge_step`), `Logger.resume` continues the counters' rates, and the
+    run writes exactly the records an uninterrupted run writes (same values, bit for bit
+    on CPU; `tests/test_ppo_resume.py` kills a run and compares).
 
     Args:
       config: the configuration.
@@ -783,13 +814,19 @@ def train(
       iterations: stop after this many iterations (default: `config.num_iterations`);
         the learning-rate schedule still spans `config.total_steps`.
       progress: show a progress bar.
+      jsonl: also write each seed's records to `<run dir>/metrics.jsonl`.
+      checkpoint_every: iterations between checkpoints (host mode); 0: none.
+      checkpoint_dir: where checkpoints go (default: `log_dir/checkpoints`).
+      resume: continue from the newest checkpoint in `checkpoint_dir` (host mode).
 
     Returns:
       A `RunResult`.
 
     Raises:
-      ValueError: for an unknown mode, repeated or negative seeds, a bad `iterations`, or
-        (graph mode) a run past 2^31 env steps, whose step would overflow int32.
+      ValueError: for an unknown mode, repeated or negative seeds, a bad `iterations` or
+        `checkpoint_every`, (graph mode) a run past 2^31 env steps, whose step would
+        overflow int32, or checkpoints asked for in graph mode; with `resume`, when
+        there is no checkpoint or it was taken with another config or other seeds.
     """
     if mode not in MODES:
         raise ValueError(f"train(mode={mode!r}): use one of {MODES}.")
@@ -807,6 +844,12 @@ def train(
         raise ValueError(
             f"train(iterations={iterations!r}) must be an int in [1, {config.num_iterations}]."
         )
+    if isinstance(checkpoint_every, bool) or not isinstance(checkpoint_every, int):
+        raise ValueError(f"train(checkpoint_every=...) must be an int, got {checkpoint_every!r}.")
+    if checkpoint_every < 0:
+        raise ValueError(f"train(checkpoint_every=...) must be >= 0, got {checkpoint_every}.")
+    if mode == "graph" and (checkpoint_every or resume):
+        raise ValueError(GRAPH_CHECKPOINTS)
     spi = config.steps_per_iteration
     if mode == "graph" and n * spi >= 2**31:
         raise ValueError(
@@ -817,27 +860,135 @@ def train(
     ppo = make_ppo(config)
     runs = len(seeds)
     run_dirs = tuple(os.path.join(log_dir, f"seed_{s}") for s in seeds)
-    board = ProgressBoard(n * spi, enabled=progress)
-    bars = [ProgressWriter(board, r, f"seed {s}") for r, s in enumerate(seeds)]
-
-    def writers(run: int) -> list[jm.Writer]:
-        tb = jm.TensorBoardWriter(
-            run_dirs[run],
-            hparams=_hparams(config, seeds[run], mode),
-            hparam_metrics=[HEADLINE[0][1], HEADLINE[1][1]],
-        )
-        return [tb, bars[run]]
-
     keys = jax.vmap(jax.random.key)(jnp.asarray(seeds, jnp.uint32))
+    checkpoints = None
+    if checkpoint_every or resume:
+        checkpoints = _Checkpoints(
+            checkpoint_dir or os.path.join(log_dir, "checkpoints"), _run_settings(config, seeds)
+        )
     try:
-        with jm.Logger(ppo.metrics, writers, runs=runs) as logger:
-            if mode == "host":
-                state = _train_host(ppo, logger, keys, n)
-            else:
-                state = _train_graph(ppo, logger, keys, n)
+        restored, done = None, 0
+        if checkpoints is not None and resume:
+            step = checkpoints.newest()
+            restored = checkpoints.restore(step, _init_states(ppo, keys, runs))
+            done = int(np.max(jax.device_get(restored.iteration)))
+        # A resumed run's first record is at `(done + 1) * spi`: the writers drop what a
+        # killed run wrote from there on, so that those steps are not drawn twice.
+        purge = (done + 1) * spi if resume else None
+        board = ProgressBoard(n * spi, enabled=progress)
+        bars = [ProgressWriter(board, r, f"seed {s}") for r, s in enumerate(seeds)]
+
+        def writers(run: int) -> list[jm.Writer]:
+            tb = jm.TensorBoardWriter(
+                run_dirs[run],
+                hparams=_hparams(config, seeds[run], mode),
+                hparam_metrics=[HEADLINE[0][1], HEADLINE[1][1]],
+                purge_step=purge,
+            )
+            out: list[jm.Writer] = [tb, bars[run]]
+            if jsonl:
+                path = os.path.join(run_dirs[run], "metrics.jsonl")
+                out.append(jm.JsonlWriter(path, purge_step=purge))
+            return out
+
+        try:
+            with jm.Logger(ppo.metrics, writers, runs=runs) as logger:
+                if mode == "graph":
+                    state = _train_graph(ppo, logger, keys, n)
+                else:
+                    if restored is None:
+                        state = _init_states(ppo, keys, runs)
+                    else:
+                        state = restored
+                        logger.resume(jmb.metrics_state(state.env_state), done * spi)
+                    state = _train_host(ppo, logger, state, done, n, checkpoints, checkpoint_every)
+        finally:
+            board.stop()
     finally:
-        board.stop()
+        if checkpoints is not None:
+            checkpoints.close()
     return RunResult(state, run_dirs, tuple(b.last for b in bars), time.perf_counter() - start)
+
+
+GRAPH_CHECKPOINTS = (
+    "train(mode='graph') cannot checkpoint or resume: the whole run is one jitted scan, "
+    "whose carry never reaches the host before the end. Use mode='host' (--mode host), "
+    "which writes the same values and checkpoints at period ends."
+)
+
+
+class _Checkpoints:
+    """Orbax checkpoints of the stacked `TrainState`s of all seeds, at `directory/<step>`.
+
+    A checkpoint also holds the run's config and seeds (JSON), which a resume must match.
+    Saving is asynchronous (orbax's own thread); a checkpoint appears under its step only
+    once complete, so a killed run leaves the previous one to resume from.
+    """
+
+    def __init__(self, directory: str, run: dict[str, Any]):
+        import orbax.checkpoint as ocp  # the `train` extra; only runs that checkpoint need it
+
+        self._ocp = ocp
+        self.directory = os.path.abspath(directory)
+        self._run = run
+        self._manager = ocp.CheckpointManager(
+            self.directory, options=ocp.CheckpointManagerOptions(max_to_keep=2, create=True)
+        )
+
+    def save(self, step: int, state: TrainState) -> None:
+        """Starts saving `state` as the checkpoint of `step` (returns before it is on disk)."""
+        ocp = self._ocp
+        self._manager.save(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(_without_empty(state)),
+                run=ocp.args.JsonSave(self._run),
+            ),
+        )
+
+    def newest(self) -> int:
+        """The newest checkpoint's step, once its run's settings are checked."""
+        ocp = self._ocp
+        step = self._manager.latest_step()
+        if step is None:
+            raise ValueError(f"train(resume=True): no checkpoint in {self.directory!r}.")
+        run = self._manager.restore(step, args=ocp.args.Composite(run=ocp.args.JsonRestore()))
+        if run.run != self._run:
+            saved, now = _flat_settings(run.run), _flat_settings(self._run)
+            diff = {k: (saved.get(k), now.get(k)) for k in sorted(saved.keys() | now.keys())}
+            shown = ", ".join(f"{k}: {a!r} then, {b!r} now" for k, (a, b) in diff.items() if a != b)
+            raise ValueError(
+                f"train(resume=True): the checkpoint {self.directory}/{step} is of a run with "
+                f"other settings ({shown}). Resume with the same settings, or start a new run "
+                "in another directory."
+            )
+        return step
+
+    def restore(self, step: int, target: TrainState) -> TrainState:
+        """The checkpoint of `step`, restored into arrays shaped and placed like `target`."""
+        ocp = self._ocp
+        restored = self._manager.restore(
+            step,
+            args=ocp.args.Composite(state=ocp.args.StandardRestore(_without_empty(target))),
+        ).state
+        # Zero-size leaves were not saved: they come from `target` (they hold no values).
+        leaves, treedef = jax.tree.flatten(target)
+        got = jax.tree.leaves(restored, is_leaf=lambda x: x is None)
+        return jax.tree.unflatten(treedef, [t if g is None else g for t, g in zip(leaves, got)])
+
+    def close(self) -> None:
+        """Waits for the last save to finish."""
+        self._manager.wait_until_finished()
+        self._manager.close()
+
+
+def _flat_settings(run: dict[str, Any]) -> dict[str, Any]:
+    return {**run["config"], "seeds": run["seeds"]}
+
+
+def _without_empty(state: TrainState) -> Any:
+    """`state` with its zero-size arrays (MJX has some) as None: orbax refuses to save them."""
+    return jax.tree.map(lambda x: None if x.size == 0 else x, state)
 
 
 def _batched(fn: Callable[..., Any], runs: int) -> Callable[..., Any]:
@@ -858,14 +1009,26 @@ def _init_states(ppo: PPO, keys: jax.Array, runs: int) -> TrainState:
     return jax.tree.map(lambda *xs: jnp.stack(xs), *(init(k) for k in keys))
 
 
-def _train_host(ppo: PPO, logger: jm.Logger, keys: jax.Array, n: int) -> TrainState:
-    runs, spi = logger.runs, ppo.config.steps_per_iteration
-    state = _init_states(ppo, keys, runs)
-    iteration = _batched(ppo.iteration, runs)
-    for i in range(n):
+def _train_host(
+    ppo: PPO,
+    logger: jm.Logger,
+    state: TrainState,
+    done: int,
+    n: int,
+    checkpoints: _Checkpoints | None,
+    every: int,
+) -> TrainState:
+    spi = ppo.config.steps_per_iteration
+    iteration = _batched(ppo.iteration, logger.runs)
+    for i in range(done, n):
         state = iteration(state)
         mstate = logger.flush(jmb.metrics_state(state.env_state), (i + 1) * spi)
         state = state._replace(env_state=jmb.replace_metrics_state(state.env_state, mstate))
+        if checkpoints is not None and every and ((i + 1) % every == 0 or i + 1 == n):
+            # The records up to this step are on disk before the checkpoint can exist: a
+            # resume from it purges only records after it, so none can be missing.
+            logger.wait()
+            checkpoints.save((i + 1) * spi, state)
     return state
 
 
@@ -929,6 +1092,20 @@ def _parser() -> argparse.ArgumentParser:
         "--devices", type=int, default=d.devices, help="local devices, envs split over them"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--jsonl", action="store_true", help="also write <run dir>/metrics.jsonl")
+    p.add_argument(
+        "--checkpoint-every",
+        type=int,
+        default=None,
+        help=f"iterations between checkpoints, 0: none (default: {CHECKPOINT_EVERY} in host "
+        "mode; graph mode cannot checkpoint)",
+    )
+    p.add_argument("--checkpoint-dir", default="<log-dir>/checkpoints", help="where checkpoints go")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --log-dir from its newest checkpoint (host mode)",
+    )
     return p
 
 
@@ -958,10 +1135,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     except ValueError as e:
         _parser().error(str(e))
+    if args.resume and "<time>" in args.log_dir:
+        _parser().error("--resume needs the --log-dir of the run to resume.")
+    if args.mode == "graph" and (args.resume or args.checkpoint_every):
+        _parser().error(GRAPH_CHECKPOINTS)
+    every = args.checkpoint_every
+    if every is None:
+        every = CHECKPOINT_EVERY if args.mode == "host" else 0
+    if every < 0:
+        _parser().error(f"--checkpoint-every must be >= 0, got {every}.")
     log_dir = args.log_dir.replace("<env>", args.env).replace(
         "<time>", time.strftime("%Y%m%d-%H%M%S")
     )
-    result = train(config, log_dir, seeds=args.seeds, mode=args.mode, progress=not args.no_progress)
+    checkpoint_dir = args.checkpoint_dir.replace("<log-dir>", log_dir)
+    result = train(
+        config,
+        log_dir,
+        seeds=args.seeds,
+        mode=args.mode,
+        progress=not args.no_progress,
+        jsonl=args.jsonl,
+        checkpoint_every=every,
+        checkpoint_dir=checkpoint_dir,
+        resume=args.resume,
+    )
     steps = config.num_iterations * config.steps_per_iteration
     brax_env = config.env_name in getattr(envs, "_envs", {})
     where = config.backend if brax_env else "MuJoCo Playground, MJX"
@@ -978,6 +1175,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     for d in result.run_dirs:
         print(f"  {d}")
     print(f"Open them with:\n  tensorboard --logdir {log_dir}")
+    if every:
+        print(
+            f"Checkpoints: {checkpoint_dir}; a killed run continues with the same command "
+            f"and --resume --log-dir {log_dir}"
+        )
     return 0
 
 
