@@ -617,7 +617,7 @@ HEADLINE = (
 
 MODES = ("host", "graph")
 
-CHECKPOINT_EVERY = 20
+CHECKPOINT_EVERY = 50
 """The command line's default for `--checkpoint-every` (host mode), in iterations."""
 
 
