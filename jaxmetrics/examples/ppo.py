@@ -649,7 +649,7 @@ HEADLINE = (
 
 MODES = ("host", "graph")
 
-CHECKPOINT_EVERY = 20
+CHECKPOINT_EVERY = 50
 """The command line's default for `--checkpoint-every` (host mode), in iterations."""
 
 
@@ -1096,7 +1096,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--checkpoint-every",
         type=int,
-        default=None,
+        default=argparse.SUPPRESS,  # unset: the mode's default, below
         help=f"iterations between checkpoints, 0: none (default: {CHECKPOINT_EVERY} in host "
         "mode; graph mode cannot checkpoint)",
     )
@@ -1110,7 +1110,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """The command line: trains, then prints where the event files are.
+    """The command line: trains, then prints where the event files and checkpoints are.
 
     Args:
       argv: arguments (default: `sys.argv[1:]`).
@@ -1137,11 +1137,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         _parser().error(str(e))
     if args.resume and "<time>" in args.log_dir:
         _parser().error("--resume needs the --log-dir of the run to resume.")
-    if args.mode == "graph" and (args.resume or args.checkpoint_every):
+    every = getattr(args, "checkpoint_every", CHECKPOINT_EVERY if args.mode == "host" else 0)
+    if args.mode == "graph" and (args.resume or every):
         _parser().error(GRAPH_CHECKPOINTS)
-    every = args.checkpoint_every
-    if every is None:
-        every = CHECKPOINT_EVERY if args.mode == "host" else 0
     if every < 0:
         _parser().error(f"--checkpoint-every must be >= 0, got {every}.")
     log_dir = args.log_dir.replace("<env>", args.env).replace(
