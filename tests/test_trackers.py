@@ -277,6 +277,20 @@ def test_mlflow_writer_rejects_bad_options_at_creation(tmp_path):
         jm.MLflowWriter(tracking_uri=f"sqlite:///{blocker}/m.db")
 
 
+def test_mlflow_writer_makes_a_child_of_a_given_parent_run(mlflow_uri):
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(mlflow_uri)
+    experiment = client.create_experiment("parented")
+    parent = client.create_run(experiment, run_name="sweep").info.run_id
+    writer = jm.MLflowWriter("parented", tracking_uri=mlflow_uri, parent_run_id=parent)
+    writer.open([])
+    writer.close()
+    run = client.get_run(writer.run_id)
+    assert run.data.tags["mlflow.parentRunId"] == parent
+    assert run.info.status == "FINISHED"
+
+
 def test_mlflow_store_errors_surface_on_the_callers_thread(mlflow_uri):
     from mlflow.tracking import MlflowClient
 
