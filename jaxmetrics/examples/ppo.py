@@ -972,8 +972,12 @@ class _Checkpoints:
             args=ocp.args.Composite(state=ocp.args.StandardRestore(_without_empty(target))),
         ).state
         # Zero-size leaves were not saved: they come from `target` (they hold no values).
-        leaves, treedef = jax.tree.flatten(target)
+        # Both sides are flattened with None as a leaf: the MetricsState's spec identity is
+        # a None of its own, in both trees.
+        leaves, treedef = jax.tree.flatten(target, is_leaf=lambda x: x is None)
         got = jax.tree.leaves(restored, is_leaf=lambda x: x is None)
+        if len(got) != len(leaves):
+            raise ValueError(f"the checkpoint {self.directory}/{step} does not match this run.")
         return jax.tree.unflatten(treedef, [t if g is None else g for t, g in zip(leaves, got)])
 
     def close(self) -> None:
