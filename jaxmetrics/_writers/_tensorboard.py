@@ -15,22 +15,9 @@ from .._report import HistogramData, Record
 from .._tags import TagInfo
 from .._validate import is_int
 from ._append import AppendFile
-from ._paths import fs_path
+from ._paths import writable_dir
 
 _HPARAM_TYPES = (bool, int, float, str)
-
-
-def _check_dir(logdir: Any, who: str) -> str:
-    path = fs_path(logdir, who, "logdir", "path")
-    try:
-        os.makedirs(path, exist_ok=True)
-    except (OSError, ValueError) as e:
-        raise ValueError(
-            f"{who}: cannot create log directory {path!r}: {e}. Pass a writable directory."
-        ) from None
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise ValueError(f"{who}: log directory {path!r} is not writable. Pass a writable one.")
-    return path
 
 
 class TensorBoardWriter:
@@ -117,7 +104,7 @@ class TensorBoardWriter:
             raise TypeError(
                 f"TensorBoardWriter: hparam_metrics must be a list of tags, got {hparam_metrics!r}."
             )
-        self.logdir = _check_dir(logdir, "TensorBoardWriter")
+        self.logdir = writable_dir(logdir, "TensorBoardWriter", "logdir")
         self._hparams = dict(hparams) if hparams is not None else None
         self._hparam_metrics = None if hparam_metrics is None else list(hparam_metrics)
         self._bins = window_bins

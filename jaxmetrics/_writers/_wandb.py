@@ -9,7 +9,7 @@ import numpy as np
 from .._report import Record
 from .._tags import TagInfo
 from .._validate import is_int
-from ._paths import fs_path
+from ._paths import writable_dir
 
 # `wandb.Histogram` refuses more bins than this (`wandb.sdk.data_types.histogram`).
 MAX_BINS = 512
@@ -125,15 +125,7 @@ class WandbWriter:
                 "hparams), not in init_kwargs."
             )
         if dir is not None:
-            dir = fs_path(dir, "WandbWriter", "dir", "path")  # noqa: A001
-            try:
-                os.makedirs(dir, exist_ok=True)
-            except (OSError, ValueError) as e:
-                raise ValueError(
-                    f"WandbWriter: cannot create dir {dir!r}: {e}. Pass a writable directory."
-                ) from None
-            if not os.access(dir, os.W_OK | os.X_OK):
-                raise ValueError(f"WandbWriter: dir {dir!r} is not writable. Pass a writable one.")
+            dir = writable_dir(dir, "WandbWriter", "dir")  # noqa: A001
         import wandb
 
         self._wandb = wandb
