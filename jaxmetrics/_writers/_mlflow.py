@@ -7,8 +7,8 @@ from typing import Any
 from .. import _tags
 from .._report import Record
 from .._tags import TagInfo
+from ._paths import check_hparams
 
-_HPARAM_TYPES = (bool, int, float, str)
 # MLflow's limit on the metrics of one `log_batch` call.
 _BATCH = 1000
 
@@ -18,18 +18,10 @@ def _check_str(value: Any, who: str, name: str) -> None:
         raise TypeError(f"{who}: {name} must be a non-empty string, got {value!r}.")
 
 
-def _check_hparams(hparams: Any, who: str) -> dict[str, str]:
-    if hparams is None:
-        return {}
-    if not isinstance(hparams, Mapping):
-        raise TypeError(f"{who}: hparams must be a dict, got {hparams!r}.")
-    for k, v in hparams.items():
-        if not isinstance(k, str) or not isinstance(v, _HPARAM_TYPES):
-            raise TypeError(
-                f"{who}: hparam {k!r}={v!r}: names must be strings and values bool, int, "
-                "float or str (MLflow params)."
-            )
-    return {k: str(v) for k, v in hparams.items()}
+def _params(hparams: Any, who: str) -> dict[str, str]:
+    """The hparams as MLflow params (strings)."""
+    checked = check_hparams(hparams, who, " (MLflow params)")
+    return {k: str(v) for k, v in checked.items()}
 
 
 def _check_tags(tags: Any, who: str) -> dict[str, str]:
@@ -144,7 +136,7 @@ class MLflowWriter:
             _check_str(value, who, name)
         if experiment is None:
             raise TypeError(f"{who}: experiment must be a non-empty string, got None.")
-        self._params = _check_hparams(hparams, who)
+        self._params = _params(hparams, who)
         tags = _check_tags(tags, who)
         self.client, self.experiment_id = _experiment(experiment, tracking_uri, who)
         self._run_name = run_name
@@ -170,7 +162,7 @@ class MLflowWriter:
         """
         who = "MLflowWriter.per_seed"
         _check_str(run_name, who, "run_name")
-        params = _check_hparams(hparams, who)
+        params = _params(hparams, who)
         parent_tags = _check_tags(tags, who)
         client, experiment_id = _experiment(experiment, tracking_uri, who)
         parent = _Parent(client, experiment_id, run_name, params, parent_tags)

@@ -1,6 +1,7 @@
-"""The path checks shared by the writers that write files."""
+"""The argument checks shared by the writers: paths, directories, hyperparameters."""
 
 import os
+from collections.abc import Mapping
 from typing import Any
 
 
@@ -28,3 +29,19 @@ def writable_dir(value: Any, who: str, name: str) -> str:
     if not os.access(path, os.W_OK | os.X_OK):
         raise ValueError(f"{who}: {name} {path!r} is not writable. Pass a writable one.")
     return path
+
+
+def check_hparams(hparams: Any, who: str, kind: str = "") -> dict[str, bool | int | float | str]:
+    """`hparams` (None: none) as a dict of names to bool/int/float/str, or an error naming
+    `who` and the offending entry; `kind` says what the backend makes of them."""
+    if hparams is None:
+        return {}
+    if not isinstance(hparams, Mapping):
+        raise TypeError(f"{who}: hparams must be a dict, got {hparams!r}.")
+    for k, v in hparams.items():
+        if not isinstance(k, str) or not isinstance(v, bool | int | float | str):
+            raise TypeError(
+                f"{who}: hparam {k!r}={v!r}: names must be strings and values bool, int, "
+                f"float or str{kind}."
+            )
+    return dict(hparams)

@@ -15,9 +15,7 @@ from .._report import HistogramData, Record
 from .._tags import TagInfo
 from .._validate import is_int
 from ._append import AppendFile
-from ._paths import writable_dir
-
-_HPARAM_TYPES = (bool, int, float, str)
+from ._paths import check_hparams, writable_dir
 
 
 class TensorBoardWriter:
@@ -88,14 +86,7 @@ class TensorBoardWriter:
         if not isinstance(std_bands, bool):
             raise TypeError(f"TensorBoardWriter: std_bands must be a bool, got {std_bands!r}.")
         if hparams is not None:
-            if not isinstance(hparams, Mapping):
-                raise TypeError(f"TensorBoardWriter: hparams must be a dict, got {hparams!r}.")
-            for k, v in hparams.items():
-                if not isinstance(k, str) or not isinstance(v, _HPARAM_TYPES):
-                    raise TypeError(
-                        f"TensorBoardWriter: hparam {k!r}={v!r}: names must be strings and "
-                        "values bool, int, float or str."
-                    )
+            check_hparams(hparams, "TensorBoardWriter")
         elif hparam_metrics is not None:
             raise ValueError("TensorBoardWriter: hparam_metrics needs hparams.")
         if hparam_metrics is not None and (
