@@ -335,7 +335,7 @@ class Logger(AbstractContextManager):
         # Held while deciding "open or closed" and queueing: nothing lands behind close.
         self._door = threading.Lock()
         self._busy: tuple[str, float] | None = None  # the writer call under way, since
-        self._last_step: list[int | None] = [None] * self.runs  # flushed host steps
+        self._last_step: int | None = None  # the last host-int step flushed (all runs)
         self._written_step: list[int | None] = [None] * self.runs  # on the writer thread
         self._errors: list[BaseException] = []
         self._unchecked: list[_PendingNonFinite] = []
@@ -416,9 +416,7 @@ class Logger(AbstractContextManager):
         self._surface(self._take_unchecked())
         self._await(lambda t: self._slots.acquire(timeout=t), "flush")
         try:
-            mesh = mesh_of(state)
-            layout = None if mesh is None else _Layout(jax.tree.map(lambda x: x.sharding, state))
-            (floats, counts), finished, logged = self._flush_fns(mesh, layout)(state)
+            (floats, counts), finished, logged = self._report_and_reset(state)
             floats.copy_to_host_async()
             counts.copy_to_host_async()
             with self._door:
@@ -430,10 +428,17 @@ class Logger(AbstractContextManager):
             raise
         self.report_nbytes = floats.nbytes + counts.nbytes
         if is_int(step):
-            self._last_step = [int(step)] * self.runs
+            self._last_step = int(step)
         with self._lock:
             self._unchecked.append(_PendingNonFinite(step, tuple(range(self.runs)), counts))
         return state._replace(finished=finished, logged=logged)
+
+    def _report_and_reset(self, state: MetricsState) -> Any:
+        """Dispatches the jitted flush program for the state's layout: `((floats, counts),
+        finished, logged)`, the packed report and the reset statistics."""
+        mesh = mesh_of(state)
+        layout = None if mesh is None else _Layout(jax.tree.map(lambda x: x.sharding, state))
+        return self._flush_fns(mesh, layout)(state)
 
     def timer(self, name: str) -> AbstractContextManager[None]:
         """`with logger.timer("rollout"): ...` adds the block's wall time to the tag
@@ -472,15 +477,13 @@ class Logger(AbstractContextManager):
         self._check_leading(state)
         if not is_int(step) or not 0 <= step < 2**63:
             raise ValueError(f"Logger.resume: step must be an int in [0, 2^63), got {step!r}.")
-        totals = self._packer.totals(
-            self._flush_fns(None, None)(jax.device_get(state))[0][1], self.runs
-        )
+        totals = self._packer.totals(self._report_and_reset(state)[0][1], self.runs)
         now = time.time()
         with self._door:
             self._check_open("resume")
             for run in range(self.runs):
                 self._builders[run].start(now, totals[run])
-            self._last_step = [int(step)] * self.runs
+            self._last_step = int(step)
             self._written_step = [int(step)] * self.runs
 
     def wait(self) -> None:
@@ -746,7 +749,7 @@ class Logger(AbstractContextManager):
             raise ValueError(
                 f"Logger.flush: step must be in [0, 2^63) (TensorBoard stores int64), got {step}."
             )
-        last = max((s for s in self._last_step if s is not None), default=None)
+        last = self._last_step
         if last is not None and step < last:
             raise ValueError(
                 f"Logger.flush: step {step} after step {last}; steps must not decrease (charts "
