@@ -13,11 +13,13 @@ from ._report import HistogramData as HistogramData
 from ._report import Record as Record
 from ._report import Writer as Writer
 from ._spec import Ema as Ema
+from ._spec import Groups as Groups
 from ._spec import Histogram as Histogram
 from ._spec import Logged as Logged
 from ._spec import Term as Term
 from ._spec import Window as Window
 from ._spec import ema as ema
+from ._spec import groups as groups
 from ._spec import histogram as histogram
 from ._spec import window as window
 from ._state import MetricsState as MetricsState
@@ -37,6 +39,7 @@ __all__ = [
     "ConsoleWriter",
     "Count",
     "Ema",
+    "Groups",
     "Histogram",
     "HistogramData",
     "JsonlWriter",
@@ -58,6 +61,7 @@ __all__ = [
     "WriterError",
     "WriterTimeoutError",
     "ema",
+    "groups",
     "histogram",
     "window",
     "wrap_step",

@@ -131,6 +131,7 @@ def custom_terms(tmp_path_factory):
             "report": {k: v for k, v in report.items() if not hasattr(v, "shape")},
             "nan_report": {k: v for k, v in nan_report.items() if not hasattr(v, "shape")},
             "check": check.to_dict(),
+            "group_check": group_check.to_dict(),
         }""",
     )
 
@@ -345,3 +346,12 @@ def test_custom_terms_smoothing_matches_numpy(custom_terms):
     for stat, want in t["numpy"].items():
         assert t["jaxmetrics"][stat] == pytest.approx(want, rel=1e-5), stat
     assert images(cell(custom_terms.nb, "smoothing")) == 1
+
+
+def test_custom_terms_groups_match_a_pandas_groupby(custom_terms):
+    t = custom_terms.probe["group_check"]
+    assert set(t["by hand count"]) == {"flat", "rough", "stairs"}  # every level has episodes
+    for level, want in t["by hand mean"].items():
+        assert t["jaxmetrics mean"][level] == pytest.approx(want, rel=1e-5), level
+        assert t["jaxmetrics count"][level] == t["by hand count"][level], level
+    assert all(t["match"].values())
