@@ -644,10 +644,12 @@ class Logger(AbstractContextManager):
         self, packed: tuple[np.ndarray, np.ndarray], step: Any, when: Any, run: Any
     ) -> None:
         wall_time = time.time()
+        # io_callback hands over jax Arrays: one copy to numpy here, not a device
+        # dispatch per statistic when the writer thread unpacks them.
         n = int(np.size(when))
-        floats = np.reshape(packed[0], (n, -1))
-        counts = np.reshape(packed[1], (n, 2, -1))
-        step, when, run = (np.reshape(a, (n,)) for a in (step, when, run))
+        floats = np.reshape(np.asarray(packed[0]), (n, -1))
+        counts = np.reshape(np.asarray(packed[1]), (n, 2, -1))
+        step, when, run = (np.reshape(np.asarray(a), (n,)) for a in (step, when, run))
         with self._door, self._lock:
             if self._closed:
                 # Raised inside the jitted call that emitted, the only place left to say it.

@@ -2,6 +2,8 @@
 TensorBoard's event files and compared with numpy float64 and scipy (`trim_mean` for the
 IQM, `t.interval` for the 95% interval), with seeds missing or non-finite at a step."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -62,6 +64,10 @@ def _summary_reference(per_seed):
     return out
 
 
+def _select(mask, new, old):
+    return jnp.where(mask.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+
+
 @pytest.fixture(scope="module")
 def written(tmp_path_factory):
     root = tmp_path_factory.mktemp("seeds")
@@ -82,19 +88,12 @@ def written(tmp_path_factory):
         seeds_summary=[jm.TensorBoardWriter(root / "seeds_summary")],
     ) as logger:
         for step, period in zip(STEPS, _periods()):
-            # One vmapped log per value index; a seed with fewer values logs NaN-free
-            # padding only where it has values (masked by logging per seed below).
+            # Value i of every seed in one vmapped log, kept only for the seeds that have
+            # an i-th value.
             for i in range(max(v.size for v in period)):
                 has = np.array([v.size > i for v in period])
                 vals = np.array([v[i] if v.size > i else 0.0 for v in period], np.float32)
-                logged = log(state, jnp.asarray(vals))
-                state = jax.tree.map(
-                    lambda new, old: jnp.where(
-                        has.reshape((-1,) + (1,) * (new.ndim - 1)), new, old
-                    ),
-                    logged,
-                    state,
-                )
+                state = jax.tree.map(functools.partial(_select, has), log(state, vals), state)
             state = logger.flush(state, step)
         summary_tags = logger.summary_tags
 
