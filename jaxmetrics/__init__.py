@@ -4,6 +4,7 @@ Please don't use symbols from the private `_*` modules: everything public is re-
 """
 
 from ._count import Count as Count
+from ._history import History as History
 from ._logger import Logger as Logger
 from ._logger import NonFiniteError as NonFiniteError
 from ._logger import WriterError as WriterError
@@ -42,6 +43,7 @@ __all__ = [
     "Groups",
     "Histogram",
     "HistogramData",
+    "History",
     "JsonlWriter",
     "Logged",
     "Logger",

@@ -10,6 +10,7 @@ what goes wrong there, and the non-finite policy, surface on the caller's thread
 
 import atexit
 import functools
+import heapq
 import os
 import queue
 import sys
@@ -24,11 +25,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _tags
+from . import _history, _tags
+from ._count import Count, to_int
 from ._emit import InGraphEmit
+from ._history import History
 from ._layout import mesh_of, placed, replicated
 from ._metrics import Metrics
-from ._report import RecordBuilder, Writer, check_writers, derived_tags
+from ._report import Record, RecordBuilder, Writer, check_writers, derived_tags
+from ._seeds import SeedsSummary, summary_tags
 from ._state import MetricsState
 from ._tags import TagInfo
 from ._timer import Timers
@@ -44,6 +48,13 @@ def _unused(writers: WritersArg, runs: int) -> list[list[Writer]]:
     if not callable(writers) or isinstance(writers, Writer):
         _close_quietly([list(writers)] if not isinstance(writers, Writer) else [[writers]])
     return [[] for _ in range(runs)]
+
+
+def _writer_list(writers: Any) -> list[Any]:
+    """`writers` as a list for `_close_quietly` (a lone writer or a non-list as one)."""
+    if isinstance(writers, Writer) or not isinstance(writers, Sequence):
+        return [writers]
+    return list(writers)
 
 
 def _close_quietly(writers: Sequence[Sequence[Any]]) -> None:
@@ -211,7 +222,16 @@ class Logger(AbstractContextManager):
     Fully-jitted mode (PureJaxRL style): `state = logger.emit(state, step, when, run=i)`
     inside the jitted function writes the same records through an ordered `io_callback`
     under `lax.cond`, only where `when` is true (the period ends), and works under `vmap`
-    over seeds, each seed to its own run.
+    over seeds, each seed to its own run. Without a callback: `state, history =
+    logger.record(state, history, step, when)` keeps the packed reports in an in-graph
+    buffer (`history_init(capacity)`) returned with the jitted call's result, and
+    `logger.write_history(history)` writes them afterwards (plain JAX: persistent
+    compilation cache, `vmap` and sharding with no special rule).
+
+    Cross-seed summary: with `runs > 1` and `seeds_summary=[writers]`, one more run gets,
+    per scalar tag `T` and step, the mean across seeds under `T` itself and
+    `T/seeds_std`, `/seeds_min`, `/seeds_max`, `/seeds_iqm`, `/seeds_ci_lower`,
+    `/seeds_ci_upper` and `/seeds_count` (see `summary_tags`).
 
     What each record holds, beyond the spec's tags (`Metrics.tags`):
 
@@ -253,6 +273,7 @@ class Logger(AbstractContextManager):
       report_nbytes: bytes of the report the last `flush` copied device -> host.
       emit_calls: host callbacks received from `emit` (one per period end, whatever the
         number of vmapped seeds in it).
+      summary_tags: the tag table of the seeds summary run (empty without one).
 
     Args:
       metrics: the spec whose states are flushed.
@@ -268,6 +289,16 @@ class Logger(AbstractContextManager):
       timeout: seconds one writer call (`open`, `write`, `close`) may take before the
         calls that wait for the writer thread raise `WriterTimeoutError`; None waits
         forever.
+      seeds_summary: writers of the cross-seed summary run (e.g.
+        `[TensorBoardWriter(f"{root}/seeds_summary")]`, or `per_seed(...).seeds_summary()`
+        of the W&B and MLflow writers); needs `runs >= 2`. None (the default): no
+        summary. Per step, over the seeds whose value is finite there: mean, sample std
+        (ddof 1), min, max, interquartile mean (rliable's `trim_mean(x, 0.25)`), the
+        Student-t 95% interval of the mean (`mean -/+ t(0.975, n-1) std / sqrt(n)`) and
+        that number of seeds. Scalar statistics, counts and counters are summarized;
+        histograms, window contents, `/nonfinite` and under/overflow counts and timers
+        are not. A step's summary is written once every seed has written that step or
+        a later one (and at `wait`/`close`/`write_history` for the rest).
 
     Examples:
       >>> import jax.numpy as jnp, jaxmetrics as jm
@@ -296,6 +327,7 @@ class Logger(AbstractContextManager):
         timer_prefix: str = "Timers",
         max_pending: int = 8,
         timeout: float | None = 120.0,
+        seeds_summary: Sequence[Writer] | None = None,
     ):
         if not isinstance(metrics, Metrics):
             raise TypeError(f"Logger: metrics must be a jaxmetrics.Metrics, got {metrics!r}.")
@@ -313,12 +345,37 @@ class Logger(AbstractContextManager):
         self.runs = int(runs)
         self.tags: tuple[TagInfo, ...] = _tag_table(metrics, include_running)
         _tags.check_unique((i.tag, _tags.origin(i)) for i in self.tags)
+        self.summary_tags: tuple[TagInfo, ...] = ()
+        if seeds_summary is not None:
+            if self.runs < 2:
+                _close_quietly([_writer_list(seeds_summary)])
+                raise ValueError(
+                    f"Logger(runs={self.runs}, seeds_summary=...): a summary across seeds "
+                    "needs runs >= 2 (vmapped seeds)."
+                )
+            try:
+                self.summary_tags = summary_tags(self.tags)
+            except ValueError:
+                _close_quietly([_writer_list(seeds_summary)])
+                raise
         self._timer_prefix = timer_prefix
         self._timer_tags: set[str] = set()
         # Under jax.distributed every process runs the same program; process 0 writes.
         self.writes = jax.process_index() == 0
         self._writers = (
             self._make_writers(writers, self.runs) if self.writes else _unused(writers, self.runs)
+        )
+        self._summary_writers: list[Writer] = []
+        if seeds_summary is not None and not self.writes:
+            _close_quietly([_writer_list(seeds_summary)])
+        elif seeds_summary is not None:
+            try:
+                self._summary_writers = check_writers(seeds_summary, "Logger(seeds_summary=...)")
+            except TypeError:
+                _close_quietly([*self._writers, _writer_list(seeds_summary)])
+                raise
+        self._summary = (
+            SeedsSummary(self.summary_tags, self.runs) if self._summary_writers else None
         )
         self._infos = {i.tag: i for i in self.tags}
         edges = {
@@ -329,6 +386,8 @@ class Logger(AbstractContextManager):
 
         self._packer, compute, self._flush_fns = _programs(metrics, runs, include_running)
         self._emit = InGraphEmit(compute, metrics.reset_period, self._on_emit)
+        self._compute = compute
+        self._layout_id = _history.layout_id(type(metrics._spec)._fields[0], include_running)
         self._timers = Timers()
         self._timeout = None if timeout is None else float(timeout)
         self._lock = threading.Lock()
@@ -348,8 +407,10 @@ class Logger(AbstractContextManager):
             for ws in self._writers:
                 for w in ws:
                     w.open(self.tags)
+            for w in self._summary_writers:
+                w.open(self.summary_tags)
         except BaseException:
-            _close_quietly(self._writers)
+            _close_quietly([*self._writers, self._summary_writers])
             raise
         self._thread = threading.Thread(target=self._work, name="jaxmetrics-logger", daemon=True)
         self._thread.start()
@@ -496,6 +557,7 @@ class Logger(AbstractContextManager):
         done = threading.Event()
         with self._door:
             self._check_open("wait")
+            self._queue.put(self._drain_summary)
             self._queue.put(done.set)
         self._await(done.wait, "wait")
         self._surface(self._take_unchecked())
@@ -512,6 +574,7 @@ class Logger(AbstractContextManager):
             if self._closed:
                 return
             self._closed = True
+            self._queue.put(self._drain_summary)
             self._queue.put(self._close_writers)
             self._queue.put(None)
         _OPEN.pop(id(self), None)
@@ -581,10 +644,12 @@ class Logger(AbstractContextManager):
         self, packed: tuple[np.ndarray, np.ndarray], step: Any, when: Any, run: Any
     ) -> None:
         wall_time = time.time()
+        # io_callback hands over jax Arrays: one copy to numpy here, not a device
+        # dispatch per statistic when the writer thread unpacks them.
         n = int(np.size(when))
-        floats = np.reshape(packed[0], (n, -1))
-        counts = np.reshape(packed[1], (n, 2, -1))
-        step, when, run = (np.reshape(a, (n,)) for a in (step, when, run))
+        floats = np.reshape(np.asarray(packed[0]), (n, -1))
+        counts = np.reshape(np.asarray(packed[1]), (n, 2, -1))
+        step, when, run = (np.reshape(np.asarray(a), (n,)) for a in (step, when, run))
         with self._door, self._lock:
             if self._closed:
                 # Raised inside the jitted call that emitted, the only place left to say it.
@@ -600,6 +665,177 @@ class Logger(AbstractContextManager):
                 self._unchecked.append(_PendingNonFinite(s, (r,), counts[i]))
                 host = functools.partial(self._packer.unpack, floats[i], counts[i])
                 self._queue.put(functools.partial(self._write_run, r, host, s, wall_time, {}))
+
+    # ------------------------------------------------------------------ report history
+
+    def history_init(self, capacity: int) -> History:
+        """An empty report history of `capacity` records, for `record` (pure; call it
+        inside or outside `jit`, per seed under `vmap`).
+
+        Args:
+          capacity: the most period ends it keeps, a Python int >= 1 (it fixes the
+            buffer's shape): at least the number of periods the jitted call ends.
+
+        Raises:
+          ValueError: for a capacity that is not an int >= 1.
+        """
+        self._check_open("history_init")
+        if not is_int(capacity) or capacity < 1:
+            raise ValueError(
+                f"Logger.history_init: capacity must be an int >= 1 (the period ends the "
+                f"jitted call records), got {capacity!r}."
+            )
+        return _history.init(self._packer, int(capacity), self._layout_id)
+
+    def record(
+        self, state: MetricsState, history: History, step: Any, when: Any
+    ) -> tuple[MetricsState, History]:
+        """In-graph flush into a report history, without a host callback: where `when` is
+        true, the report and `step` go into the next slot of `history` and the period
+        resets. After the jitted call, `write_history` writes the records.
+
+        Pure and jittable, plain JAX (no callback, no custom batching rule): it works
+        under `vmap` over seeds (one history per seed; `run` is its position on the
+        vmapped axis) and with sharded states, and a program using it goes into JAX's
+        persistent compilation cache. Under `vmap` with a batched `when`, JAX computes the
+        report on every call (a `switch` becomes a select), so call `record` at period
+        ends, as `emit`.
+
+        A full history (more period ends than its capacity) keeps nothing more: the
+        period is then *not* reset, so the returned state still holds every episode
+        since the last record kept (a `flush` of it reports them), and `write_history`
+        raises after writing what it holds.
+
+        Args:
+          state: the state (per seed, under vmap).
+          history: from `history_init` of this logger (per seed, under vmap).
+          step: int scalar, the x-axis value (exact to 64 bits with `jax_enable_x64`).
+          when: bool scalar: whether this is a period end.
+
+        Returns:
+          `(state, history)`: the state, reset where a record was kept, and the history.
+
+        Examples:
+          >>> import jax, jax.numpy as jnp, jaxmetrics as jm
+          >>> metrics = jm.Metrics(logged=["x"])
+          >>> memory = [jm.MemoryWriter() for _ in range(2)]
+          >>> logger = jm.Logger(metrics, lambda run: [memory[run]], runs=2)
+          >>> def train(seed):
+          ...     def body(carry, i):
+          ...         state, history = carry
+          ...         state = metrics.log(state, {"x": seed * 10.0 + i.astype(jnp.float32)})
+          ...         return logger.record(state, history, i, i % 2 == 1), None
+          ...     carry = (metrics.init(1), logger.history_init(capacity=2))
+          ...     return jax.lax.scan(body, carry, jnp.arange(4))[0]
+          >>> state, history = jax.jit(jax.vmap(train))(jnp.arange(2.0))
+          >>> logger.write_history(history)
+          >>> logger.close()
+          >>> [(r.step, r.scalars["Train/x"]) for r in memory[1].records]
+          [(1, 10.5), (3, 12.5)]
+        """
+        self._check_open("record")
+        step, when = jnp.asarray(step), jnp.asarray(when)
+        for name, v, ok in (
+            ("step", step, jnp.issubdtype(step.dtype, jnp.integer)),
+            ("when", when, when.dtype == jnp.bool_),
+        ):
+            if not ok or v.shape != ():
+                kind = "a bool" if name == "when" else "an int"
+                raise TypeError(
+                    f"Logger.record: {name} must be {kind} scalar, got {v.dtype}{list(v.shape)}."
+                )
+        if not isinstance(state, MetricsState):
+            raise TypeError(f"Logger.record: expected a MetricsState, got {type(state).__name__}.")
+        _history.check(history, self._layout_id, self._packer, (), "Logger.record")
+        return _history.record(self._compute, self.metrics.reset_period, state, history, step, when)
+
+    def write_history(self, history: History) -> None:
+        """Writes every record of a report history (`record`), in order, per run: each
+        run's records in the order its periods ended, the runs interleaved by step.
+
+        Like `flush`, it returns once the records are queued for the writer thread
+        (`wait()` or `close()` writes them), and what earlier calls left to report is
+        raised before it acts. A record's `wall_time` is when this call ran, and records
+        from a history have no `Counters/<c>/per_sec` (no host clock ran between them);
+        the rates of later flushes and emits count from this call.
+
+        Args:
+          history: the history the jitted call returned (with a leading `[runs]` axis
+            when `runs > 1`).
+
+        Raises:
+          ValueError: a history of another logger's spec, of the wrong shape, or one
+            that overflowed: more period ends than its capacity. Then the records it
+            holds are queued first (they are written), and the error names how many
+            period ends were not kept and the capacity that holds them all.
+          TypeError: not a `History`, or called inside `jit`.
+          NonFiniteError, WriterError, WriterTimeoutError: as for `flush`, from earlier
+            calls.
+          RuntimeError: the logger is closed.
+        """
+        self._check_open("write_history")
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(history)):
+            raise TypeError(
+                "Logger.write_history is a host call: return the history from the jitted "
+                "function and write it after the call."
+            )
+        lead = () if self.runs == 1 else (self.runs,)
+        _history.check(history, self._layout_id, self._packer, lead, "Logger.write_history")
+        self._surface(self._take_unchecked())
+        floats, counts, hi, lo, ends = jax.device_get(
+            (history.floats, history.counts, history.steps.hi, history.steps.lo, history.ends)
+        )
+        capacity = history.floats.shape[-2]
+        floats = np.reshape(floats, (self.runs, capacity, -1))
+        counts = np.reshape(counts, (self.runs, capacity, 2, -1))
+        steps = np.reshape(to_int(Count(hi, lo)), (self.runs, capacity))
+        ends = np.reshape(ends, (self.runs,))
+        kept = np.minimum(ends, capacity)
+        # Each run's records in their order, the runs interleaved by step.
+        order = list(
+            heapq.merge(
+                *[[(int(steps[r, k]), r, k) for k in range(int(kept[r]))] for r in range(self.runs)]
+            )
+        )
+        wall_time = time.time()
+        with self._door:
+            self._check_open("write_history")
+            self._queue.put(
+                functools.partial(self._write_history, order, floats, counts, kept, wall_time)
+            )
+        with self._lock:
+            self._unchecked += [_PendingNonFinite(s, (r,), counts[r, k]) for s, r, k in order]
+        over = [(r, int(ends[r])) for r in range(self.runs) if ends[r] > capacity]
+        if over:
+            shown = ", ".join(f"run {r}: {n} period ends" for r, n in over)
+            raise ValueError(
+                f"Logger.write_history: the history overflowed ({shown}; capacity "
+                f"{capacity}): the {capacity} records it holds per run are written, the "
+                "period ends past them were not kept (the state returned with it still "
+                "holds those periods: flush it to report them). Create the history with "
+                f"logger.history_init({max(n for _, n in over)}) or more."
+            )
+
+    def _write_history(
+        self,
+        order: Sequence[tuple[int, int, int]],
+        floats: np.ndarray,
+        counts: np.ndarray,
+        kept: np.ndarray,
+        wall_time: float,
+    ) -> None:
+        for step, r, k in order:
+            host = functools.partial(self._packer.unpack, floats[r, k], counts[r, k])
+            try:  # one bad record (a step out of range) does not stop the others
+                self._write_run(r, host, step, wall_time, {}, new_point=False)
+            except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
+                with self._lock:
+                    self._errors.append(e)
+        for r in range(self.runs):
+            if kept[r]:
+                totals = self._packer.totals(counts[r, kept[r] - 1], 1)[0]
+                self._builders[r].start(wall_time, totals)
+        self._drain_summary()
 
     # ------------------------------------------------------------------ writer thread
 
@@ -636,6 +872,7 @@ class Logger(AbstractContextManager):
         step: int,
         wall_time: float,
         timers: dict,
+        new_point: bool = True,
     ) -> None:
         if not 0 <= step < 2**63:
             raise ValueError(
@@ -654,23 +891,39 @@ class Logger(AbstractContextManager):
                 )
         self._written_step[run] = step
         values = [(self._infos[tag], v) for tag, v in host().items()]
-        record = self._builders[run](values, step, wall_time, timers)
-        for w in self._writers[run]:
+        record = self._builders[run](values, step, wall_time, timers, new_point=new_point)
+        self._write_to(self._writers[run], f"run {run}", record)
+        if self._summary is not None:
+            for summary in self._summary.add(run, record):
+                self._write_to(self._summary_writers, "the seeds summary", summary)
+
+    def _write_to(self, writers: Sequence[Writer], run: str, record: Record) -> None:
+        """Gives `record` to each writer; a failure is kept for the caller's thread and
+        the other writers still get the record."""
+        step = record.step
+        for w in writers:
             try:
-                self._call(f"writer {w!r} of run {run} (write, step {step})", w.write, record)
+                self._call(f"writer {w!r} of {run} (write, step {step})", w.write, record)
             except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
-                err = RuntimeError(f"writer {w!r} of run {run} failed at step {step}: {e!r}")
+                err = RuntimeError(f"writer {w!r} of {run} failed at step {step}: {e!r}")
                 err.__cause__ = e
                 with self._lock:
                     self._errors.append(err)
 
+    def _drain_summary(self) -> None:
+        """Writes the summary of the steps that some seeds have not reached."""
+        if self._summary is not None:
+            for summary in self._summary.drain():
+                self._write_to(self._summary_writers, "the seeds summary", summary)
+
     def _close_writers(self) -> None:
-        for run, ws in enumerate(self._writers):
+        named = [(f"run {run}", ws) for run, ws in enumerate(self._writers)]
+        for run, ws in [*named, ("the seeds summary", self._summary_writers)]:
             for w in ws:
                 try:
-                    self._call(f"writer {w!r} of run {run} (close)", w.close)
+                    self._call(f"writer {w!r} of {run} (close)", w.close)
                 except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
-                    err = RuntimeError(f"closing writer {w!r} of run {run} failed: {e!r}")
+                    err = RuntimeError(f"closing writer {w!r} of {run} failed: {e!r}")
                     err.__cause__ = e
                     with self._lock:
                         self._errors.append(err)

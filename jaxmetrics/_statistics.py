@@ -21,7 +21,8 @@ class Statistic(NamedTuple):
       source: what asks for it. "simple": its name among a metric's `stats`; "ema",
         "window", "percentile", "histogram": the matching `jaxmetrics.ema/window/
         histogram(...)`; "always": every metric; "running": `include_running`;
-        "counter": every counter; "logger": added by the `Logger` from another tag.
+        "counter": every counter; "logger": added by the `Logger` from another tag;
+        "seeds": the `Logger`'s cross-seed summary run (`_seeds`), of a seed tag.
       host: what a `Record` holds. "float": a float, left out when not finite;
         "exact": an exact int; "sparse": an exact int written from its first non-zero
         value on; "histogram": `HistogramData`; "window": the finite window contents.
@@ -58,6 +59,15 @@ STATISTICS = (
     Statistic("per_sec", "/per_sec", "logger", "float"),
     Statistic("histogram/underflow", "/histogram/underflow", "logger", "sparse"),
     Statistic("histogram/overflow", "/histogram/overflow", "logger", "sparse"),
+    # The summary run's tag of the mean across seeds is the seeds' own tag.
+    Statistic("seeds_mean", "", "seeds", "float", "mean"),
+    Statistic("seeds_std", "/seeds_std", "seeds", "float", "std"),
+    Statistic("seeds_min", "/seeds_min", "seeds", "float", "min"),
+    Statistic("seeds_max", "/seeds_max", "seeds", "float", "max"),
+    Statistic("seeds_iqm", "/seeds_iqm", "seeds", "float"),
+    Statistic("seeds_ci_lower", "/seeds_ci_lower", "seeds", "float"),
+    Statistic("seeds_ci_upper", "/seeds_ci_upper", "seeds", "float"),
+    Statistic("seeds_count", "/seeds_count", "seeds", "exact", "count"),
 )
 
 SIMPLE_STATS = tuple(s.name for s in STATISTICS if s.source == "simple")

@@ -35,12 +35,17 @@ class Packer:
         `jax.ShapeDtypeStruct` (anything with a `shape`), or a `Count` of them.
       order: the tags in the order `unpack` returns them (every tag of `report`).
       dtype: the float dtype of the packed statistics.
+
+    Attributes:
+      num_floats: F, the length of the packed floats.
+      num_counts: K, the columns of the packed counts.
+      dtype: the float dtype of the packed statistics.
     """
 
     def __init__(self, report: Mapping[str, Any], order: Sequence[str], dtype: Any):
         if sorted(order) != sorted(report):
             raise ValueError("Packer: `order` must list every tag of the report once.")
-        self._dtype = jnp.dtype(dtype)
+        self.dtype = jnp.dtype(dtype)
         layout, f_off, c_off = [], 0, 0
         for tag in order:
             v = report[tag]
@@ -51,6 +56,7 @@ class Packer:
                 layout.append(_Slot(tag, False, f_off, tuple(v.shape)))
                 f_off += math.prod(v.shape)
         self._layout = tuple(layout)
+        self.num_floats, self.num_counts = f_off, c_off
 
     def pack(self, report: Mapping[str, Any]) -> tuple[jax.Array, jax.Array]:
         """In-graph: `(floats [F], counts uint32 [2, K])`.
@@ -70,8 +76,8 @@ class Packer:
                 his.append(jnp.ravel(v.hi))
                 los.append(jnp.ravel(v.lo))
             else:
-                floats.append(jnp.ravel(a).astype(self._dtype))
-        f = jnp.concatenate(floats) if floats else jnp.zeros((0,), self._dtype)
+                floats.append(jnp.ravel(a).astype(self.dtype))
+        f = jnp.concatenate(floats) if floats else jnp.zeros((0,), self.dtype)
         c = (
             jnp.stack([jnp.concatenate(his), jnp.concatenate(los)])
             if his

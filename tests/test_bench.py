@@ -31,6 +31,9 @@ ARGS = [
     "--group-counts", "4",
     "--flush-envs", "16,64",
     "--flush-repeats", "2",
+    "--period-envs", "16",
+    "--period-ends", "3",
+    "--period-every", "2",
     "--env", "inverted_pendulum",
     "--e2e-envs", "4",
     "--e2e-steps", str(ROLLOUT_STEPS),
@@ -51,6 +54,7 @@ SCENARIOS = {
     "scaling_window",
     "groups",
     "flush",
+    "period_ends",
     "end_to_end",
     "alternatives",
     "sharded",
@@ -116,6 +120,7 @@ def test_rows_cover_the_requested_sizes(result):
     assert sc["groups"]["data"]["check"] == {"groups": 4, "group_counts_sum_to_total": True}
     gstate = [r[5] for r in sc["groups"]["rows"]]  # 1 + g report rows per metric
     assert gstate[0] < gstate[1]
+    assert [r[0] for r in sc["period_ends"]["rows"]] == ["reset only", "emit", "history"]
     e2e = [r[0] for r in sc["end_to_end"]["rows"]]
     assert len(e2e) == 4 and e2e[0] == "bare rollout" and "empty spec" in e2e[1]
     alt = [r[0] for r in sc["alternatives"]["rows"]]
@@ -203,3 +208,16 @@ def test_sharded_rows_count_the_collectives_of_each_layout(result):
     dist = {r[0]: r for r in sc["distributed"]["rows"]}
     assert dist["jaxmetrics, full 10-term spec"][3] == 0  # no collective per step
     assert 0 < dist["jaxmetrics, full 10-term spec"][4] < 4096  # O(metrics) bytes
+
+
+def test_period_end_table_times_emit_and_history_on_the_same_records():
+    from jaxmetrics.bench import _flush_cost
+
+    t = _flush_cost.period_ends(num_envs=8, periods=3, every=2, repeats=1)
+    rows = {r[0]: r for r in t.rows}
+    assert sorted(rows) == ["emit", "history", "reset only"]
+    # emit and history each wrote 3 records per call, warm-up round included.
+    assert t.data["records_written"] == 2 * 2 * 3
+    # A record: F floats, 2K count words, 2 step words, 4 bytes each.
+    assert rows["history"][5] % 4 == 0 and rows["history"][5] > 0
+    assert rows["reset only"][3] is None and rows["history"][3] is not None

@@ -35,7 +35,7 @@ CORE = {
     "_validate",
     "_wrap_step",
 }
-HOST = {"_emit", "_logger", "_report", "_timer", "_transfer"}
+HOST = {"_emit", "_history", "_logger", "_report", "_seeds", "_timer", "_transfer"}
 LAYERS = [CORE, HOST, {"_writers"}, {"brax"}, {"playground"}, {"examples", "bench", "__init__"}]
 # What a writer sees (TagInfo, Record, the registries) must not pull in JAX.
 PURE = {"_reductions", "_report", "_spec", "_statistics", "_tags", "_validate", "_writers"}

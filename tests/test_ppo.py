@@ -162,6 +162,30 @@ def test_vmapped_seeds_each_write_their_own_run(host_run, tmp_path):
     assert counts0 != counts7
 
 
+@pytest.mark.slow
+def test_graph_history_mode_writes_what_the_host_loop_writes_with_a_seeds_summary(
+    host_run, tmp_path
+):
+    _, host = host_run
+    result = ppo.train(
+        CONFIG, str(tmp_path), seeds=(0, 7), mode="graph-history", iterations=SHORT, progress=False
+    )
+    seed0, seed7 = (read_scalars(d) for d in result.run_dirs)
+    steps = [SPI * (i + 1) for i in range(SHORT)]
+    assert sorted(seed0["Counters/env_steps"]) == steps
+    # Host rates do not exist between the records of a history; the rest is the host run's.
+    assert not [t for t in seed0 if t.endswith("/per_sec")]
+    host = {t: v for t, v in host.items() if not t.endswith("/per_sec")}
+    assert_same_reports(seed0, host, steps, "graph-history seed 0 vs host")
+    summary = read_scalars(str(tmp_path / "seeds_summary"))
+    tag = "Episode_Metrics/episode_return"
+    for step in steps:
+        values = np.array([seed0[tag][step], seed7[tag][step]], np.float64)
+        np.testing.assert_allclose(summary[tag][step], values.mean(), rtol=1e-6)
+        np.testing.assert_allclose(summary[f"{tag}/seeds_std"][step], values.std(ddof=1), rtol=1e-5)
+        assert summary[f"{tag}/seeds_count"][step] == 2
+
+
 def test_gae_matches_a_python_loop():
     rng = np.random.default_rng(0)
     t, n, gamma, lam = 7, 3, 0.9, 0.8
@@ -244,8 +268,10 @@ def test_bad_run_arguments_fail_before_any_compile(tmp_path):
         ppo.train(CONFIG, str(tmp_path), seeds=(-1,))
     with pytest.raises(ValueError, match="iterations"):
         ppo.train(CONFIG, str(tmp_path), iterations=CONFIG.num_iterations + 1)
-    with pytest.raises(ValueError, match=r"mode='graph'\) cannot checkpoint or resume"):
+    with pytest.raises(ValueError, match=r"mode='graph' or 'graph-history'\) cannot checkpoint"):
         ppo.train(CONFIG, str(tmp_path), mode="graph", resume=True)
+    with pytest.raises(ValueError, match=r"mode='graph' or 'graph-history'\) cannot checkpoint"):
+        ppo.train(CONFIG, str(tmp_path), mode="graph-history", checkpoint_every=5)
     with pytest.raises(ValueError, match=r"checkpoint_every=\.\.\.\) must be >= 0"):
         ppo.train(CONFIG, str(tmp_path), checkpoint_every=-1)
 

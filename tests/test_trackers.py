@@ -23,14 +23,15 @@ HPARAMS = {"lr": 0.001, "algo": "ppo", "epochs": 4}
 
 def _log_runs(writers):
     """Two vmapped seeds: seed r logs test_writers' periods + r; its counter grows by
-    BIG - r per flush."""
+    BIG - r per flush. `writers` is a `per_seed` factory; its `seeds_summary()` writes
+    the cross-seed summary."""
     stats = ("mean", "std", "min", "max", "sum", "count", jm.ema(0.5))
     stats += (jm.window(WINDOW, percentiles=(50,)), jm.histogram(BINS, RANGE))
     metrics = jm.Metrics(logged={"x": jm.Logged(stats=stats)}, counters=["samples"])
     state = jax.vmap(lambda _: metrics.init(1))(jnp.arange(RUNS))
     log = jax.vmap(lambda s, v: metrics.log(s, {"x": v}))
     inc = jax.vmap(lambda s, b: metrics.increment(s, "samples", b))
-    with jm.Logger(metrics, writers, runs=RUNS) as logger:
+    with jm.Logger(metrics, writers, runs=RUNS, seeds_summary=writers.seeds_summary()) as logger:
         for step, vals in zip(STEPS, _periods()):
             if len(vals):
                 shifted = np.stack([vals + r for r in range(RUNS)]).astype(np.float32)
@@ -41,6 +42,21 @@ def _log_runs(writers):
 
 def _references():
     return [_reference([p + r for p in _periods()]) for r in range(RUNS)]
+
+
+def _summary_reference():
+    """Per step, tag -> (mean, sample std, count) of the seeds' float64 reference values
+    of the tags both seeds have (the seeds' empty periods coincide)."""
+    refs = _references()
+    out = []
+    for i in range(len(STEPS)):
+        row = {}
+        for tag in [*FLOAT_TAGS, "Train/x/count"]:
+            if tag in refs[0][i]:
+                v = np.array([float(ref[i][tag]) for ref in refs], np.float64)
+                row[tag] = (v.mean(), v.std(ddof=1), v.size)
+        out.append(row)
+    return out
 
 
 # ---------------------------------------------------------------- Weights & Biases
@@ -117,7 +133,7 @@ def wandb_runs(tmp_path_factory):
 
 
 def test_wandb_one_run_per_seed_in_one_group_with_hparams_as_config(wandb_runs):
-    assert sorted(wandb_runs) == ["exp/seed_0", "exp/seed_1"]
+    assert sorted(wandb_runs) == ["exp/seed_0", "exp/seed_1", "exp/seeds_summary"]
     for run, config, _, _ in wandb_runs.values():
         assert (run.project, run.run_group) == ("jaxmetrics-test", "exp")
         assert {k: config[k] for k in HPARAMS} == HPARAMS
@@ -137,6 +153,22 @@ def test_wandb_history_matches_float64_reference_and_skips_empty(wandb_runs):
                 np.testing.assert_allclose(got[s], v, rtol=1e-5, atol=1e-6, err_msg=f"{tag}@{s}")
         counts = {s: json.loads(row["Train/x/count"]) for s, row in history.items()}
         assert counts == {s: x["Train/x/count"] for s, x in zip(STEPS, ref)}
+
+
+def test_wandb_seeds_summary_run_holds_the_mean_and_std_across_seeds(wandb_runs):
+    import json
+
+    _, _, history, _ = wandb_runs["exp/seeds_summary"]
+    assert sorted(history) == STEPS
+    for s, want in zip(STEPS, _summary_reference()):
+        row = history[s]
+        counted = {t for t in row if t.endswith("/seeds_count")}
+        counters = ["Counters/samples"] + (["Counters/samples/per_sec"] if s > STEPS[0] else [])
+        assert counted == {f"{t}/seeds_count" for t in [*want, *counters]}
+        for tag, (mean, std, n) in want.items():
+            np.testing.assert_allclose(json.loads(row[tag]), mean, rtol=1e-5, atol=1e-6)
+            np.testing.assert_allclose(json.loads(row[f"{tag}/seeds_std"]), std, atol=1e-5)
+            assert json.loads(row[f"{tag}/seeds_count"]) == n
 
 
 def test_wandb_counters_are_exact_in_history_and_summary(wandb_runs):
@@ -260,6 +292,19 @@ def test_mlflow_metric_history_matches_float64_reference(mlflow_runs):
         assert [(m.step, m.value) for m in counters] == [
             (s, float((i + 1) * (BIG - r))) for i, s in enumerate(STEPS)
         ]
+
+
+def test_mlflow_seeds_summary_goes_into_the_parent_run(mlflow_runs):
+    client, runs = mlflow_runs
+    run_id = runs["ppo"].info.run_id
+    want = _summary_reference()
+    for tag in [*FLOAT_TAGS, "Train/x/count"]:
+        for stat, k in (("", 0), ("/seeds_std", 1), ("/seeds_count", 2)):
+            got = {m.step: m.value for m in client.get_metric_history(run_id, tag + stat)}
+            ref = {s: w[tag][k] for s, w in zip(STEPS, want) if tag in w}
+            assert sorted(got) == sorted(ref), tag + stat
+            for s, v in ref.items():
+                np.testing.assert_allclose(got[s], v, rtol=1e-5, atol=1e-5, err_msg=tag + stat)
 
 
 def test_mlflow_writer_rejects_bad_options_at_creation(tmp_path):

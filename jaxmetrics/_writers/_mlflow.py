@@ -1,7 +1,7 @@
 """MLflow runs through `MlflowClient` (mlflow imported when the writer is created)."""
 
 import threading
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 from .. import _tags
@@ -143,6 +143,7 @@ class MLflowWriter:
         self._tags = tags
         self._parent_run_id = parent_run_id
         self._parent: _Parent | None = None  # set by per_seed
+        self._into_parent = False  # per_seed's summary writer: logs into the parent run
         self.run_id: str | None = None
 
     @staticmethod
@@ -153,12 +154,13 @@ class MLflowWriter:
         tracking_uri: str | None = None,
         hparams: Mapping[str, bool | int | float | str] | None = None,
         tags: Mapping[str, str] | None = None,
-    ) -> Callable[[int], list["MLflowWriter"]]:
+    ) -> "MLflowSeeds":
         """A `Logger(..., runs=N)` writer factory: one parent run `run_name` and, for run
         i, a child run `<run_name>/seed_<i>`; each has the hparams as params and the tags.
+        Its `seeds_summary()` is a writer into the parent run, for the cross-seed summary.
 
-        The parent is created with the first child's run and finished when the last
-        child closes. Arguments as for `MLflowWriter`.
+        The parent is created with the first child's (or the summary's) run and finished
+        when the last of them closes. Arguments as for `MLflowWriter`.
         """
         who = "MLflowWriter.per_seed"
         _check_str(run_name, who, "run_name")
@@ -166,22 +168,14 @@ class MLflowWriter:
         parent_tags = _check_tags(tags, who)
         client, experiment_id = _experiment(experiment, tracking_uri, who)
         parent = _Parent(client, experiment_id, run_name, params, parent_tags)
-
-        def make(run: int) -> list[MLflowWriter]:
-            writer = MLflowWriter(
-                experiment,
-                run_name=f"{run_name}/seed_{run}",
-                tracking_uri=tracking_uri,
-                hparams=hparams,
-                tags=tags,
-            )
-            writer._parent = parent
-            return [writer]
-
-        return make
+        return MLflowSeeds(parent, experiment, run_name, tracking_uri, hparams, tags)
 
     def open(self, tags: Sequence[TagInfo]) -> None:
-        """Creates the run and logs its params."""
+        """Creates the run and logs its params (the summary writer of `per_seed` logs
+        into the parent run)."""
+        if self._into_parent and self._parent is not None:
+            self.run_id = self._parent.acquire()
+            return
         run_tags = dict(self._tags)
         parent = self._parent.acquire() if self._parent is not None else self._parent_run_id
         if parent is not None:
@@ -207,9 +201,48 @@ class MLflowWriter:
         seed's run is."""
         if self.run_id is None:
             return
-        self.client.set_terminated(self.run_id)
+        if not self._into_parent:
+            self.client.set_terminated(self.run_id)
         if self._parent is not None:
             self._parent.release()
+
+
+class MLflowSeeds:
+    """`MLflowWriter.per_seed`'s factory: `factory(run)` is run `run`'s writers (a child
+    run of the shared parent)."""
+
+    def __init__(
+        self,
+        parent: _Parent,
+        experiment: str,
+        run_name: str,
+        tracking_uri: str | None,
+        hparams: Mapping[str, bool | int | float | str] | None,
+        tags: Mapping[str, str] | None,
+    ):
+        self._parent, self._experiment, self._run_name = parent, experiment, run_name
+        self._tracking_uri, self._hparams, self._tags = tracking_uri, hparams, tags
+
+    def __call__(self, run: int) -> list[MLflowWriter]:
+        return [self._writer(f"{self._run_name}/seed_{run}")]
+
+    def seeds_summary(self) -> list[MLflowWriter]:
+        """The writers of the cross-seed summary (`Logger(seeds_summary=...)`): metrics
+        logged into the parent run, which MLflow's UI shows above its seeds."""
+        writer = self._writer(self._run_name)
+        writer._into_parent = True
+        return [writer]
+
+    def _writer(self, run_name: str) -> MLflowWriter:
+        writer = MLflowWriter(
+            self._experiment,
+            run_name=run_name,
+            tracking_uri=self._tracking_uri,
+            hparams=self._hparams,
+            tags=self._tags,
+        )
+        writer._parent = self._parent
+        return writer
 
 
 def _experiment(name: str, tracking_uri: str | None, who: str) -> tuple[Any, str]:

@@ -1,7 +1,7 @@
 """Weights & Biases runs through `wandb` (imported when the writer is created)."""
 
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -146,9 +146,10 @@ class WandbWriter:
     @staticmethod
     def per_seed(
         project: str, *, group: str, name: str | None = None, **kwargs: Any
-    ) -> Callable[[int], list["WandbWriter"]]:
+    ) -> "WandbSeeds":
         """A `Logger(..., runs=N)` writer factory: run i writes the W&B run
-        `<name or group>/seed_<i>` in `group`.
+        `<name or group>/seed_<i>` in `group`; its `seeds_summary()` is the writer of the
+        cross-seed summary run `<name or group>/seeds_summary` in the same group.
 
         Args:
           project: the W&B project.
@@ -160,12 +161,7 @@ class WandbWriter:
         _check_str(group, "group")
         if group is None:
             raise TypeError("WandbWriter.per_seed: group must be a non-empty string.")
-        stem = group if name is None else name
-
-        def make(run: int) -> list[WandbWriter]:
-            return [WandbWriter(project, name=f"{stem}/seed_{run}", group=group, **kwargs)]
-
-        return make
+        return WandbSeeds(project, group, group if name is None else name, kwargs)
 
     def open(self, tags: Sequence[TagInfo]) -> None:
         """Starts the W&B run."""
@@ -185,3 +181,25 @@ class WandbWriter:
         """Finishes the run (if started)."""
         if self.run is not None:
             self.run.finish()
+
+
+class WandbSeeds:
+    """`WandbWriter.per_seed`'s factory: `factory(run)` is run `run`'s writers."""
+
+    def __init__(self, project: str, group: str, stem: str, kwargs: Mapping[str, Any]):
+        self._project, self._group, self._stem, self._kwargs = project, group, stem, kwargs
+
+    def __call__(self, run: int) -> list[WandbWriter]:
+        return [self._writer(f"seed_{run}")]
+
+    def seeds_summary(self) -> list[WandbWriter]:
+        """The writers of the cross-seed summary run (`Logger(seeds_summary=...)`): the
+        W&B run `<stem>/seeds_summary` in the seeds' group. Its mean across seeds has
+        the seeds' own tags, so W&B draws it in their charts; as one more run of the
+        group it leaves the group's mean and min/max band unchanged."""
+        return [self._writer("seeds_summary")]
+
+    def _writer(self, suffix: str) -> WandbWriter:
+        return WandbWriter(
+            self._project, name=f"{self._stem}/{suffix}", group=self._group, **self._kwargs
+        )

@@ -38,6 +38,9 @@ class Config:
     group_counts: tuple[int, ...] = (1, 8, 64)
     flush_envs: tuple[int, ...] = (256, 1024, 4096, 16384, 65536)
     flush_repeats: int = 50
+    period_envs: int = 4096
+    period_ends: int = 50
+    period_every: int = 10
     sharded_per_device: int = 4096
     sharded_steps: int = 500
     sharded_repeats: int = 5
@@ -64,6 +67,9 @@ HELP = {
     "group_counts": "numbers of groups of the per-group table (isolated envs, scaling steps)",
     "flush_envs": "num_envs values of the flush table",
     "flush_repeats": "flushes timed per size",
+    "period_envs": "envs of the period-end table (emit vs report history)",
+    "period_ends": "period ends per jitted call in the period-end table",
+    "period_every": "steps per period in the period-end table",
     "sharded_per_device": "envs per device of the weak-scaling rollouts",
     "sharded_steps": "scan length of the weak-scaling rollouts",
     "sharded_repeats": "timed repeats of the weak-scaling rollouts",
@@ -87,6 +93,7 @@ QUICK = dataclasses.replace(
     scale_steps=100,
     scale_repeats=3,
     flush_repeats=20,
+    period_envs=256,
     sharded_per_device=32,
     sharded_steps=100,
     sharded_repeats=2,
@@ -129,6 +136,7 @@ def run(
         done(_isolated.groups(list(c.group_counts), c.num_envs, c.scale_steps, c.scale_repeats))
     if "flush" in c.scenarios:
         done(_flush_cost.flush(list(c.flush_envs), c.flush_repeats))
+        done(_flush_cost.period_ends(c.period_envs, c.period_ends, c.period_every, c.flush_repeats))
     if "e2e" in c.scenarios:
         done(
             *_rollout.end_to_end(

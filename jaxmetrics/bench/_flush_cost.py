@@ -128,3 +128,113 @@ def flush(env_list: list[int], repeats: int) -> Table:
         f"{repeats} flushes after a warm-up; the state was filled by {FILL_STEPS} random steps.",
     ]
     return t
+
+
+def _period_end_programs(spec: jm.Metrics, logger: jm.Logger, every: int, capacity: int):
+    """The jitted rollouts of one seed: (inputs, base step) -> ..., a period end every
+    `every` steps: reset only, `Logger.emit`, `Logger.record` into a history."""
+
+    def scan(state, xs, dones, carry, end):
+        def body(c, inp):
+            s, extra = c
+            s = spec.update(s, inp[0], inp[1])
+            when = inp[2] % every == every - 1
+            return end(s, extra, inp[2], when), None
+
+        steps = jnp.arange(xs.shape[0], dtype=jnp.int32)
+        return jax.lax.scan(body, (state, carry), (xs, dones, steps))[0]
+
+    def reset_only(state, xs, dones, base):
+        def end(s, extra, i, when):
+            return jax.lax.cond(when, spec.reset_period, lambda s: s, s), extra
+
+        return scan(state, xs, dones, base, end)[0]
+
+    def emit(state, xs, dones, base):
+        def end(s, extra, i, when):
+            return logger.emit(s, extra + i, when), extra
+
+        return scan(state, xs, dones, base, end)[0]
+
+    def history(state, xs, dones, base):
+        def end(s, h, i, when):
+            return logger.record(s, h, base + i, when)
+
+        return scan(state, xs, dones, logger.history_init(capacity), end)
+
+    return {"reset only": reset_only, "emit": emit, "history": history}
+
+
+def period_ends(num_envs: int, periods: int, every: int, repeats: int) -> Table:
+    """What a period end costs: `Logger.emit` (an ordered host callback per period end)
+    against `Logger.record` into an in-graph history written after the call."""
+    t = Table(
+        "period_ends",
+        f"Period ends in one jit: emit vs report history ({num_envs} envs, 10 terms, "
+        f"{periods} period ends of {every} steps)",
+        [
+            "variant",
+            "jitted call ms",
+            "host write ms",
+            "us per period end above reset only",
+            "compile s",
+            "history bytes per record",
+        ],
+    )
+    spec = wl.random_spec(10)
+    steps = periods * every
+    xs, dones = inputs(num_envs, steps, seed=2)
+    memory = jm.MemoryWriter()
+    timed: dict[str, list[tuple[float, float]]] = {}
+    with jm.Logger(spec, [memory]) as logger:
+        programs = _period_end_programs(spec, logger, every, periods)
+        compiled, compile_s = {}, {}
+        state = spec.init(num_envs)
+        for name, fn in programs.items():
+            t0 = time.perf_counter()
+            compiled[name] = jax.jit(fn).lower(state, xs, dones, jnp.int32(0)).compile()
+            compile_s[name] = time.perf_counter() - t0
+        base = 0
+        for i in range(repeats + 1):  # interleaved; the first round is the warm-up
+            for name, fn in compiled.items():
+                t0 = time.perf_counter()
+                out = fn(state, xs, dones, jnp.int32(base))
+                jax.block_until_ready(out)
+                jax.effects_barrier()
+                t1 = time.perf_counter()
+                if name == "history":
+                    logger.write_history(out[1])
+                logger.wait()
+                t2 = time.perf_counter()
+                base += steps
+                if i:
+                    timed.setdefault(name, []).append((t1 - t0, t2 - t1))
+        h = logger.history_init(periods)
+        record_bytes = sum(x.nbytes for x in (h.floats, h.counts, *h.steps)) // periods
+    med = {
+        n: (float(np.median([a for a, _ in v])), float(np.median([b for _, b in v])))
+        for n, v in timed.items()
+    }
+    floor = med["reset only"][0]
+    for name, (call, write) in med.items():
+        above = None if name == "reset only" else (call + write - floor) / periods * 1e6
+        t.add(
+            name,
+            call * 1e3,
+            write * 1e3,
+            above,
+            compile_s[name],
+            record_bytes if name == "history" else None,
+        )
+    t.data["records_written"] = len(memory.records)
+    t.notes += [
+        "One jitted lax.scan of the 10-term spec's update over random inputs, a period end "
+        f"every {every} steps: `reset only` resets the period in a lax.cond (no report); "
+        "`emit` is `Logger.emit` (ordered io_callback under lax.cond) into a MemoryWriter; "
+        "`history` is `Logger.record` into `history_init(periods)`, returned with the "
+        "state. jitted call: until the result is ready (and emit's callbacks have run); "
+        "host write: `write_history` + `wait()` for the history, `wait()` for emit. "
+        "us per period end: (call + write - reset only's call) / period ends. Medians of "
+        f"{repeats} interleaved repeats after a warm-up.",
+    ]
+    return t

@@ -647,7 +647,7 @@ HEADLINE = (
 """What the progress bar shows: (label, tag); the return and length are over the last
 100 episodes."""
 
-MODES = ("host", "graph")
+MODES = ("host", "graph", "graph-history")
 
 CHECKPOINT_EVERY = 50
 """The command line's default for `--checkpoint-every` (host mode), in iterations."""
@@ -810,7 +810,9 @@ def train(
       seeds: one run per seed; several seeds are `vmap`-ed in one program.
       mode: "host": one jitted call per iteration and a `Logger.flush` between calls;
         "graph": the whole run is one jitted `lax.scan` whose reports are streamed by
-        `Logger.emit`.
+        `Logger.emit`; "graph-history": the same scan keeps each iteration's report in
+        an in-graph history (`Logger.record`, no host callback), written after the call
+        (`Logger.write_history`).
       iterations: stop after this many iterations (default: `config.num_iterations`);
         the learning-rate schedule still spans `config.total_steps`.
       progress: show a progress bar.
@@ -848,12 +850,12 @@ def train(
         raise ValueError(f"train(checkpoint_every=...) must be an int, got {checkpoint_every!r}.")
     if checkpoint_every < 0:
         raise ValueError(f"train(checkpoint_every=...) must be >= 0, got {checkpoint_every}.")
-    if mode == "graph" and (checkpoint_every or resume):
+    if mode != "host" and (checkpoint_every or resume):
         raise ValueError(GRAPH_CHECKPOINTS)
     spi = config.steps_per_iteration
-    if mode == "graph" and n * spi >= 2**31:
+    if mode != "host" and n * spi >= 2**31:
         raise ValueError(
-            f"train(mode='graph'): {n * spi:,} env steps overflow the int32 step of the "
+            f"train(mode={mode!r}): {n * spi:,} env steps overflow the int32 step of the "
             "in-graph emit; use mode='host' or fewer steps."
         )
     start = time.perf_counter()
@@ -892,9 +894,16 @@ def train(
             return out
 
         try:
-            with jm.Logger(ppo.metrics, writers, runs=runs) as logger:
+            summary = None
+            if runs > 1:
+                summary = [
+                    jm.TensorBoardWriter(os.path.join(log_dir, "seeds_summary"), purge_step=purge)
+                ]
+            with jm.Logger(ppo.metrics, writers, runs=runs, seeds_summary=summary) as logger:
                 if mode == "graph":
                     state = _train_graph(ppo, logger, keys, n)
+                elif mode == "graph-history":
+                    state = _train_graph_history(ppo, logger, keys, n)
                 else:
                     if restored is None:
                         state = _init_states(ppo, keys, runs)
@@ -911,8 +920,9 @@ def train(
 
 
 GRAPH_CHECKPOINTS = (
-    "train(mode='graph') cannot checkpoint or resume: the whole run is one jitted scan, "
-    "whose carry never reaches the host before the end. Use mode='host' (--mode host), "
+    "train(mode='graph' or 'graph-history') cannot checkpoint or resume: the whole run is "
+    "one jitted scan, whose carry never reaches the host before the end. Use mode='host' "
+    "(--mode host), "
     "which writes the same values and checkpoints at period ends."
 )
 
@@ -1059,6 +1069,28 @@ def _train_graph(ppo: PPO, logger: jm.Logger, keys: jax.Array, n: int) -> TrainS
     return jax.block_until_ready(_batched(run, runs)(*args))
 
 
+def _train_graph_history(ppo: PPO, logger: jm.Logger, keys: jax.Array, n: int) -> TrainState:
+    spi = ppo.config.steps_per_iteration
+
+    def run(state: TrainState) -> tuple[TrainState, jm.History]:
+        def body(carry: tuple[TrainState, jm.History], _: None) -> tuple[Any, None]:
+            state, history = carry
+            state = ppo.iteration(state)
+            step = state.iteration * jnp.int32(spi)
+            mstate, history = logger.record(
+                jmb.metrics_state(state.env_state), history, step, jnp.bool_(True)
+            )
+            env_state = jmb.replace_metrics_state(state.env_state, mstate)
+            return (state._replace(env_state=env_state), history), None
+
+        carry = (state, logger.history_init(n))  # one record per iteration
+        return jax.lax.scan(body, carry, None, length=n)[0]
+
+    state, history = _batched(run, logger.runs)(_init_states(ppo, keys, logger.runs))
+    logger.write_history(history)
+    return jax.block_until_ready(state)
+
+
 def _prog() -> str:
     # Run as `python -m jaxmetrics.examples.ppo`, argv[0] is this file's path; run as the
     # installed `jaxmetrics-ppo` script, it is that script.
@@ -1084,7 +1116,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--num-envs", type=int, default=d.num_envs, help="envs per seed")
     p.add_argument("--steps", type=int, default=d.total_steps, help="env steps per seed")
     p.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run per seed")
-    p.add_argument("--mode", choices=MODES, default="host", help="host loop or one jit")
+    p.add_argument(
+        "--mode",
+        choices=MODES,
+        default="host",
+        help="host loop, one jit streaming through emit, or one jit keeping a report history",
+    )
     p.add_argument("--log-dir", default="runs/ppo/<env>-<time>", help="run dirs go here")
     p.add_argument("--episode-length", type=int, default=d.episode_length, help="time limit")
     p.add_argument("--unroll-length", type=int, default=d.unroll_length, help="steps per iteration")
@@ -1142,7 +1179,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.resume and "<time>" in args.log_dir:
         _parser().error("--resume needs the --log-dir of the run to resume.")
     every = getattr(args, "checkpoint_every", CHECKPOINT_EVERY if args.mode == "host" else 0)
-    if args.mode == "graph" and (args.resume or every):
+    if args.mode != "host" and (args.resume or every):
         _parser().error(GRAPH_CHECKPOINTS)
     if every < 0:
         _parser().error(f"--checkpoint-every must be >= 0, got {every}.")
@@ -1176,6 +1213,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     print("TensorBoard event files:")
     for d in result.run_dirs:
         print(f"  {d}")
+    if len(result.run_dirs) > 1:
+        print(f"  {os.path.join(log_dir, 'seeds_summary')} (mean, IQM, 95% interval across seeds)")
     print(f"Open them with:\n  tensorboard --logdir {log_dir}")
     if every:
         print(
