@@ -79,10 +79,12 @@ def _count_overflow(row: dict[str, Any]) -> dict[str, Any]:
     """Adds to a row's `nonfinite` count the statistics that overflowed the dtype: a
     period statistic that is not finite although the period has values (all finite: the
     others were left out), or an EMA or window statistic that is infinite (values near
-    float32's limit: their sum is inf, their mean NaN). Such a statistic is not written,
-    so the count is what makes the loss visible (warned about or raised at flush)."""
+    float32's limit: their sum is inf, their mean NaN), or a quantile that fell on values
+    outside its sketch's magnitude range. Such a statistic is not written, so the count
+    is what makes the loss visible (warned about or raised at flush)."""
     has = ~_count.is_zero(row["count"])
-    bad = [has & ~jnp.isfinite(row[k]) for k in ("mean", "std", "sum")]
+    quantiles = [k for k in row if _statistics.get(k).source == "quantiles"]
+    bad = [has & ~jnp.isfinite(row[k]) for k in ("mean", "std", "sum", *quantiles)]
     bad += [
         jnp.isinf(v)
         for k, v in row.items()
@@ -134,8 +136,7 @@ def _flatten_terms(terms: Mapping[str, Any], policy: str) -> tuple[list[Term], l
             reduces = {o: t.reduce.get(o, "mean") for o in outputs}
         else:
             reduces = {o: t.reduce for o in outputs}
-        for r in reduces.values():
-            _reductions.check(r, where)
+        reduces = {o: _reductions.check(r, where) for o, r in reduces.items()}
         stats = parse_stats(t.stats, where)
         nonfinite = check_policy(t.nonfinite if t.nonfinite is not None else policy, where)
         for o in outputs:
@@ -234,7 +235,10 @@ class Metrics:
         self.dtype = dt
 
         # Episode rows sorted by reduction (stable): each reduction is one block.
-        order = sorted(range(len(ep_specs)), key=lambda i: _episode.ORDER.index(ep_specs[i].reduce))
+        order = sorted(
+            range(len(ep_specs)),
+            key=lambda i: _episode.ORDER.index(_reductions.name(ep_specs[i].reduce)),
+        )
         self._ep_rows = tuple(ep_specs[i] for i in order)
         self._ep_defined = tuple(ep_specs)  # definition order, for the tag table
         self._episode_plan = _episode.EpisodePlan.build([s.reduce for s in self._ep_rows], dt)
