@@ -7,8 +7,9 @@ episode value is read; then that env's accumulators reset.
 A discounted row keeps its episode's step index `t` and a compensated sum of
 `gamma^t x_t`. `gamma^t` is recomputed from `t` on every step as `exp(t ln gamma)`, with
 `ln gamma` taken in float64 on the host: no running product to drift, and a float32
-`ln gamma` is far more precise than a float32 `gamma` near 1 (a product of float32
-gammas is off by `t` times gamma's rounding: 3e-4 relative after 10^4 steps of 0.9999).
+`ln gamma` is far more precise than a float32 `gamma` near 1 (a running product of
+float32 gammas drifts to 7e-5 relative after 10^4 steps of 0.9999; this stays within
+1e-6 of float64, `tests/test_discounted.py`).
 """
 
 import dataclasses
