@@ -41,7 +41,8 @@ class Transition(NamedTuple):
     and every sub-step is a step of the episode: a "mean" term is the mean over all
     sub-steps (equal to averaging each env step's sub-step mean), a "sum" term sums every
     sub-step (as Brax sums rewards), "max"/"min" run over all sub-steps, "last" is the
-    last sub-step's value. The episode ends on the last sub-step of the env step where
+    last sub-step's value, `jaxmetrics.discounted(gamma)` discounts per sub-step (`t` =
+    env step x `action_repeat` + sub-step). The episode ends on the last sub-step of the env step where
     `done` is set.
 
     Attributes:
