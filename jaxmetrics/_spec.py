@@ -176,7 +176,7 @@ def quantiles(levels: Sequence[float] = (50, 90, 99), accuracy: float = 0.01) ->
     (fixed size, exact integer counts, merged exactly across shards, hosts and seeds,
     O(1) per value); it resets with the period. `<metric>/q<p>` is the value of rank
     `floor(p/100 * (n-1))` among the period's `n` values (numpy's "lower" method), within
-    `accuracy` of it in relative terms, for values of magnitude in [1e-9, 1e9] and 0.
+    `accuracy` of it in relative terms, for values of magnitude in (1e-9, 1e9] and 0.
     Levels are percentiles in [0, 100] with at most 4 decimals; `accuracy` is in
     [0.001, 1). Both are checked, naming the metric, when the `Metrics` spec is built.
 
