@@ -15,12 +15,14 @@ from ._report import HistogramData as HistogramData
 from ._report import Record as Record
 from ._report import Writer as Writer
 from ._spec import Ema as Ema
+from ._spec import Groups as Groups
 from ._spec import Histogram as Histogram
 from ._spec import Logged as Logged
 from ._spec import Quantiles as Quantiles
 from ._spec import Term as Term
 from ._spec import Window as Window
 from ._spec import ema as ema
+from ._spec import groups as groups
 from ._spec import histogram as histogram
 from ._spec import quantiles as quantiles
 from ._spec import window as window
@@ -42,6 +44,7 @@ __all__ = [
     "Count",
     "Discounted",
     "Ema",
+    "Groups",
     "Histogram",
     "HistogramData",
     "JsonlWriter",
@@ -65,6 +68,7 @@ __all__ = [
     "WriterTimeoutError",
     "discounted",
     "ema",
+    "groups",
     "histogram",
     "quantiles",
     "window",

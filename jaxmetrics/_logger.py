@@ -149,7 +149,7 @@ def _tag_table(metrics: Metrics, include_running: bool) -> tuple[TagInfo, ...]:
     running = [
         _tags.info(metrics.prefixes["episode"], "episode", name, "running")
         for name, spec in metrics.metric_specs.items()
-        if include_running and spec.reduce is not None
+        if include_running and spec.reduce is not None and spec.group is None
     ]
     return metrics.tags + tuple(running) + tuple(derived_tags(metrics.tags))
 

@@ -12,11 +12,14 @@ import numpy as np
 from . import _count, _episode, _reductions, _statistics, _stream, _tags
 from ._count import Count
 from ._layout import env_layout, like
-from ._spec import Logged, MetricSpec, Term, check_name, check_policy, parse_stats
+from ._spec import Groups, Logged, MetricSpec, Term, check_name, check_policy, parse_stats
 from ._state import MetricsState, spec_id
 from ._tags import TagInfo
 
 BUILTIN_COUNTERS = ("env_steps", "episodes")
+GROUP_COUNTER = "ungrouped"
+# Counted per env shard in MetricsState.ended (column 0: episodes; then per grouping).
+_SHARD_COUNTERS = ("episodes", GROUP_COUNTER)
 
 
 def _is_numeric(dtype) -> bool:
@@ -94,13 +97,16 @@ def _count_overflow(row: dict[str, Any]) -> dict[str, Any]:
     return {**row, "nonfinite": _count.merge(row["nonfinite"], Count(jnp.uint32(0), n))}
 
 
-def _flatten_terms(terms: Mapping[str, Any], policy: str) -> tuple[list[Term], list[MetricSpec]]:
+def _flatten_terms(
+    terms: Mapping[str, Any], policy: str, default_groups: Groups | None
+) -> tuple[list[Term], list[MetricSpec], list[Groups | None]]:
+    """The terms, their metrics (one per output) and each metric's grouping."""
     if not isinstance(terms, Mapping):
         raise TypeError(
             f"terms must be a dict of name -> jaxmetrics.Term (or function), got "
             f"{type(terms).__name__}."
         )
-    out_terms, specs = [], []
+    out_terms, specs, groupings = [], [], []
     for name, t in terms.items():
         where = f"term {name!r}"
         check_name(name, where)
@@ -139,11 +145,23 @@ def _flatten_terms(terms: Mapping[str, Any], policy: str) -> tuple[list[Term], l
         reduces = {o: _reductions.check(r, where) for o, r in reduces.items()}
         stats = parse_stats(t.stats, where)
         nonfinite = check_policy(t.nonfinite if t.nonfinite is not None else policy, where)
+        grouping = t.groups if t.groups is not None else default_groups
+        if grouping is not None and not isinstance(grouping, Groups):
+            raise TypeError(
+                f"{where}: groups must be jaxmetrics.groups(fn, names), got {grouping!r}."
+            )
         for o in outputs:
             metric = name if o is None else f"{name}/{o}"
             specs.append(MetricSpec(metric, name, reduces[o], stats, nonfinite))
+            groupings.append(grouping)
         out_terms.append(t)
-    return out_terms, specs
+    return out_terms, specs, groupings
+
+
+def _with_groups(spec: MetricSpec, grouping: Groups | None) -> list[MetricSpec]:
+    """A metric's report rows: the metric over all envs, then one row per group."""
+    names = () if grouping is None else grouping.names
+    return [spec] + [dataclasses.replace(spec, name=f"{spec.name}/{g}", group=g) for g in names]
 
 
 def _flatten_logged(logged: Mapping[str, Any] | Sequence[str], policy: str) -> list[MetricSpec]:
@@ -178,6 +196,9 @@ class Metrics:
       episode_prefix: tag prefix of episode metrics.
       logged_prefix: tag prefix of logged values.
       counter_prefix: tag prefix of counters.
+      groups: a `jaxmetrics.groups(fn, names)` for every term that has none of its own:
+        each statistic is then also kept per group (`<prefix>/<metric>/<group>/...`),
+        and the `ungrouped` counter counts episodes whose group index is out of range.
       dtype: float dtype of the state and its statistics: float32 (default) or float64
         (with `jax_enable_x64`). Terms and logged values may be of any float, int or bool
         dtype; they are converted.
@@ -203,6 +224,7 @@ class Metrics:
         episode_prefix: str = "Episode_Metrics",
         logged_prefix: str = "Train",
         counter_prefix: str = "Counters",
+        groups: Groups | None = None,
         dtype: Any = jnp.float32,
     ):
         check_policy(nonfinite, "Metrics(nonfinite=...)")
@@ -216,20 +238,33 @@ class Metrics:
                 "sum overflows at 65504). Use float32 (the default) or float64; terms may "
                 f"still return {dt} values."
             )
-        self._terms, ep_specs = _flatten_terms(terms or {}, nonfinite)
+        if groups is not None and not isinstance(groups, Groups):
+            raise TypeError(
+                f"Metrics(groups=...) takes jaxmetrics.groups(fn, names), got {groups!r}."
+            )
+        self._terms, ep_specs, ep_groupings = _flatten_terms(terms or {}, nonfinite, groups)
+        # Distinct groupings (each evaluated once per step), with the first term using it.
+        self._groupings: tuple[Groups, ...] = ()
+        self._grouping_terms: tuple[str, ...] = ()
+        for spec, g in zip(ep_specs, ep_groupings):
+            if g is not None and g not in self._groupings:
+                self._groupings += (g,)
+                self._grouping_terms += (spec.term,)
         lg_specs = _flatten_logged(logged or {}, nonfinite)
         if isinstance(counters, str):
             raise TypeError(f"counters must be a list of names, got the string {counters!r}.")
         user_counters = tuple(check_name(c, "counter") for c in counters)
         builtin = BUILTIN_COUNTERS if ep_specs else ()
+        builtin += (GROUP_COUNTER,) if self._groupings else ()
         clash = set(user_counters) & set(builtin)
         if clash:
             raise ValueError(f"counters {sorted(clash)} are built in; choose other names.")
         if len(set(user_counters)) != len(user_counters):
             raise ValueError(f"duplicate counter names in {list(user_counters)}.")
         self.counter_names = builtin + user_counters
-        # "episodes" is counted per env shard (MetricsState.ended), the rest here.
-        self._stored_counters = tuple(c for c in self.counter_names if c != "episodes")
+        # "episodes" and "ungrouped" are counted per env shard (MetricsState.ended).
+        self._shard_counters = tuple(c for c in _SHARD_COUNTERS if c in builtin)
+        self._stored_counters = tuple(c for c in self.counter_names if c not in _SHARD_COUNTERS)
         self.prefixes = {"episode": episode_prefix, "logged": logged_prefix}
         self._counter_prefix = counter_prefix
         self.dtype = dt
@@ -240,9 +275,26 @@ class Metrics:
             key=lambda i: _episode.ORDER.index(_reductions.name(ep_specs[i].reduce)),
         )
         self._ep_rows = tuple(ep_specs[i] for i in order)
-        self._ep_defined = tuple(ep_specs)  # definition order, for the tag table
+        # Per episode row, the index of its grouping in self._groupings (None: ungrouped).
+        self._ep_row_groups = tuple(
+            None if ep_groupings[i] is None else self._groupings.index(ep_groupings[i])
+            for i in order
+        )
+        # Report rows: each metric, then its groups; in definition order for the tag table.
+        self._ep_defined = tuple(
+            r for spec, g in zip(ep_specs, ep_groupings) for r in _with_groups(spec, g)
+        )
+        stream_rows = [r for i in order for r in _with_groups(ep_specs[i], ep_groupings[i])]
+        # Per report row: its episode row, its grouping (len(groupings): none) and group.
+        src, kind, group = [], [], []
+        for r, k in enumerate(self._ep_row_groups):
+            names = () if k is None else self._groupings[k].names
+            src += [r] * (1 + len(names))
+            kind += [len(self._groupings)] + [k] * len(names)  # type: ignore[list-item]
+            group += [0, *range(len(names))]
+        self._report_rows = tuple(np.asarray(a, np.int32) for a in (src, kind, group))
         self._episode_plan = _episode.EpisodePlan.build([s.reduce for s in self._ep_rows], dt)
-        self._ep_plan = _stream.StreamPlan.build(self._ep_rows, dt) if ep_specs else None
+        self._ep_plan = _stream.StreamPlan.build(stream_rows, dt) if ep_specs else None
         self._lg_plan = _stream.StreamPlan.build(lg_specs, dt) if lg_specs else None
         self._lg_index = {s.name: i for i, s in enumerate(lg_specs)}
         self._ep_propagate = np.array([s.nonfinite == "propagate" for s in self._ep_rows], bool)
@@ -358,7 +410,7 @@ class Metrics:
             finished=jax.tree.map(per_shard, _stream.init(self._ep_plan, shards > 1))
             if has_ep
             else None,
-            ended=_count.zeros((shards,)) if has_ep else None,
+            ended=_count.zeros((shards, len(self._shard_counters))) if has_ep else None,
             logged=_stream.init(self._lg_plan) if self._lg_plan else None,
             counters=_count.zeros((n_counters,)) if n_counters else None,
             spec=self._spec,
@@ -541,6 +593,11 @@ class Metrics:
         ended = done[None, :] & any_step
         ok = ended & (jnp.isfinite(values) | prop)
         bad = (~finite).astype(jnp.int32) + (ended & ~ok).astype(jnp.int32)
+        group_ids = [
+            like(i, state.running.steps[0], f"the group indices of {where}")
+            for i, where in self._group_ids(step_input, num_envs)
+        ]
+        values, ok, bad = self._by_group(values, ok, bad, group_ids)
 
         def by_shard(a: jax.Array) -> jax.Array:
             # [M, E] -> [S, M, E/S]: shard s gets the s-th block of envs. With the env axis
@@ -561,16 +618,83 @@ class Metrics:
             finished = jax.tree.map(lambda a: a[None], fold(*first))
         else:
             finished = jax.vmap(fold)(*args)
-        per_shard_done = jnp.sum(done.reshape(shards, num_envs // shards), axis=1, dtype=jnp.int32)
+        # Per shard: episodes ended, and those whose group index is out of range.
+        shard_counts = (
+            [done]
+            if not group_ids
+            else [
+                done,
+                jnp.sum(
+                    jnp.stack(
+                        [
+                            done & ((i < 0) | (i >= len(g.names)))
+                            for g, i in zip(self._groupings, group_ids)
+                        ]
+                    ),
+                    axis=0,
+                    dtype=jnp.int32,
+                ),
+            ]
+        )
+        per_shard = jnp.stack(
+            [
+                jnp.sum(c.reshape(shards, num_envs // shards), axis=1, dtype=jnp.int32)
+                for c in shard_counts
+            ],
+            axis=1,
+        )
         counters = state.counters
         assert counters is not None
         inc = jnp.zeros((len(self._stored_counters),), jnp.int32).at[0].set(num_envs)
         return state._replace(
             running=running,
             finished=finished,
-            ended=_count.add(state.ended, per_shard_done),  # type: ignore[arg-type]
+            ended=_count.add(state.ended, per_shard),  # type: ignore[arg-type]
             counters=_count.add(counters, inc),
         )
+
+    def _group_ids(self, step_input: Any, num_envs: int) -> list[tuple[jax.Array, str]]:
+        """Each grouping's group index per env (`[num_envs]` int32), checked, with where
+        it comes from (for messages)."""
+        out = []
+        for g, term in zip(self._groupings, self._grouping_terms):
+            where = f"the groups {list(g.names)} of term {term!r}"
+            v = g.fn(step_input, **g.params)
+            host = None if isinstance(v, jax.Array | jax.core.Tracer) else np.asarray(v)
+            if host is not None and host.dtype.kind in "iub":
+                # Wide host ints: clipped to just out of range, so they stay out of it.
+                a = jnp.asarray(np.clip(host, -1, len(g.names)).astype(np.int32))
+            else:
+                a = _as_array(v, where)
+            if not (jnp.issubdtype(a.dtype, jnp.integer) or a.dtype == jnp.bool_):
+                raise TypeError(
+                    f"{where}: the group function returned dtype {a.dtype}; return each env's "
+                    f"group index as an int array (0 for {g.names[0]!r}, ...)."
+                )
+            if a.shape != (num_envs,):
+                raise ValueError(
+                    f"{where}: the group function returned shape {a.shape}; expected one "
+                    f"index per env, (num_envs,)=({num_envs},)."
+                )
+            if a.dtype != jnp.bool_ and jnp.iinfo(a.dtype).bits > 32:
+                a = jnp.clip(a, -1, len(g.names))
+            out.append((a.astype(jnp.int32), where))
+        return out
+
+    def _by_group(
+        self, values: jax.Array, ok: jax.Array, bad: jax.Array, group_ids: list[jax.Array]
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Episode rows `[M, E]` as report rows: each metric over all envs, then (for a
+        grouped metric) once per group, masked to the envs in that group. One compare
+        per grouping; no work per group beyond the elementwise mask."""
+        if not self._groupings:
+            return values, ok, bad
+        src, kind, group = self._report_rows
+        # Row K of `ids` is 0 for every env: the overall rows match it as group 0.
+        ids = jnp.concatenate([jnp.stack(group_ids), jnp.zeros_like(group_ids[0])[None]])
+        match = jnp.take(ids, kind, axis=0) == jnp.asarray(group)[:, None]
+        take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
+        return take(values), take(ok) & match, take(bad) * match.astype(jnp.int32)
 
     def log(self, state: MetricsState, values: Mapping[str, Any]) -> MetricsState:
         """Adds logged values: each scalar, or each element of an array, weighs 1.
@@ -635,8 +759,8 @@ class Metrics:
             raise TypeError(
                 f"increment: `by` must be a scalar int, got {by.dtype}{list(by.shape)}."
             )
-        if name == "episodes":
-            raise ValueError("increment: 'episodes' is counted by update from done.")
+        if name in self._shard_counters:
+            raise ValueError(f"increment: {name!r} is counted by update from done.")
         j = self._stored_counters.index(name)
         return state._replace(counters=_count.add_at(state.counters, j, by))
 
@@ -744,9 +868,11 @@ class Metrics:
             mean = jnp.where(n > 0, mean, jnp.nan)
             for i, spec in enumerate(self._ep_rows):
                 out[_tags.tag(self.prefixes["episode"], spec.name, "running")] = mean[i]
+        shard_totals = _count.total(state.ended) if state.ended is not None else None
         for c in self.counter_names:
-            if c == "episodes":
-                value = _count.total(state.ended)  # type: ignore[arg-type]
+            if c in self._shard_counters:
+                j = self._shard_counters.index(c)
+                value = Count(shard_totals.hi[j], shard_totals.lo[j])  # type: ignore[union-attr]
             else:
                 assert state.counters is not None
                 j = self._stored_counters.index(c)

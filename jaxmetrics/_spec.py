@@ -8,6 +8,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
+from . import _statistics
 from ._reductions import Discounted
 from ._statistics import SIMPLE_STATS
 from ._validate import is_int, is_number
@@ -191,6 +192,90 @@ def quantiles(levels: Sequence[float] = (50, 90, 99), accuracy: float = 0.01) ->
     return Quantiles(levels, accuracy)  # type: ignore[arg-type]
 
 
+@dataclasses.dataclass(frozen=True)
+class Groups:
+    """A grouping of envs: every statistic of a grouped metric is also kept per group.
+
+    `fn(step_input, **params)` returns each env's group index (`[num_envs]`, int or
+    bool): 0 for `names[0]`, 1 for `names[1]`, ... An episode belongs to the group its
+    env is in on the step the episode ends. An index outside `[0, len(names))` puts the
+    episode in the metric's overall statistics only; such episodes are counted in the
+    `ungrouped` counter.
+
+    Args:
+      fn: the group function, evaluated on every `update`.
+      names: the group names, in index order; each becomes a tag component
+        (`Episode_Metrics/<metric>/<name>[/<stat>]`).
+      params: extra keyword arguments bound to `fn`.
+
+    Examples:
+      >>> import jaxmetrics as jm
+      >>> terrain = jm.groups(lambda s: s["terrain"], ("flat", "rough"))
+      >>> terrain.names
+      ('flat', 'rough')
+    """
+
+    fn: Callable[..., Any]
+    names: Sequence[str]
+    params: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        if not callable(self.fn):
+            raise TypeError(f"groups: fn must be callable, got {self.fn!r}.")
+        if not isinstance(self.params, Mapping):
+            raise TypeError("groups: params must be a dict of keyword arguments.")
+        names = self.names
+        if isinstance(names, str) or not isinstance(names, Sequence) or not names:
+            raise ValueError(
+                f"groups: names must be a non-empty sequence of group names, got {names!r}; "
+                'e.g. jaxmetrics.groups(fn, ("flat", "rough")).'
+            )
+        for n in names:
+            check_name(n, "groups")
+            if "/" in n:
+                raise ValueError(
+                    f"groups: group name {n!r} contains '/'; a group is one tag component "
+                    f"(<metric>/<group>/<stat>). Use e.g. {n.replace('/', '_')!r}."
+                )
+            if _is_statistic(n):
+                raise ValueError(
+                    f"groups: group name {n!r} is also a statistic's name, so "
+                    f"'<metric>/{n}' would read as that statistic. Rename the group, "
+                    f"e.g. {n + '_group'!r}."
+                )
+        if len(set(names)) != len(names):
+            raise ValueError(f"groups: duplicate group names in {list(names)!r}.")
+        object.__setattr__(self, "names", tuple(names))
+
+
+def _is_statistic(name: str) -> bool:
+    try:
+        _statistics.get(name)
+    except KeyError:
+        return False
+    return True
+
+
+def groups(fn: Callable[..., Any], names: Sequence[str], **params: Any) -> Groups:
+    """A grouping of envs for `Term(groups=...)` or `Metrics(groups=...)`: `fn` gives
+    each env's group index, `names` the groups in index order (see `Groups`).
+
+    Examples:
+      >>> import jax.numpy as jnp, jaxmetrics as jm
+      >>> metrics = jm.Metrics(
+      ...     terms={"reward": jm.Term(lambda s: s["reward"], reduce="sum")},
+      ...     groups=jm.groups(lambda s: s["task"], ("walk", "run")),
+      ... )
+      >>> state = metrics.init(num_envs=3)
+      >>> step = {"reward": jnp.array([1.0, 2.0, 3.0]), "task": jnp.array([0, 1, 1])}
+      >>> state = metrics.update(state, step, jnp.array([True, True, True]))
+      >>> report = metrics.to_host(metrics.compute(state))
+      >>> report["Episode_Metrics/reward"], report["Episode_Metrics/reward/run"]
+      (2.0, 2.5)
+    """
+    return Groups(fn, names, params)
+
+
 Stat = str | Ema | Window | Histogram | Quantiles
 
 
@@ -277,6 +362,8 @@ class Term:
       outputs: output names of a multi-output term (the keys of the returned dict).
       nonfinite: "skip" (default: leave NaN/inf steps out and count them), "propagate"
         or "raise" (raise at flush); None uses the `Metrics` default.
+      groups: a `jaxmetrics.groups(...)`: every statistic is also kept per group;
+        None uses the `Metrics` default (no groups unless `Metrics(groups=...)`).
 
     Examples:
       >>> import jax.numpy as jnp, jaxmetrics as jm
@@ -291,6 +378,7 @@ class Term:
     params: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     outputs: Sequence[str] | None = None
     nonfinite: str | None = None
+    groups: Groups | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -323,3 +411,4 @@ class MetricSpec:
     reduce: str | Discounted | None  # episode reduction; None for logged values
     stats: StatSpec
     nonfinite: str
+    group: str | None = None  # the group of a per-group row (`<metric>/<group>`)

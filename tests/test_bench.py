@@ -28,6 +28,7 @@ ARGS = [
     "--scale-windows", "4,16",
     "--scale-steps", "10",
     "--scale-repeats", "1",
+    "--group-counts", "4",
     "--flush-envs", "16,64",
     "--flush-repeats", "2",
     "--env", "inverted_pendulum",
@@ -48,6 +49,7 @@ SCENARIOS = {
     "scaling_envs",
     "scaling_terms",
     "scaling_window",
+    "groups",
     "flush",
     "end_to_end",
     "alternatives",
@@ -110,6 +112,10 @@ def test_rows_cover_the_requested_sizes(result):
     # two windowed rows; a slot holds a float32 value and its uint32 arrival step
     assert wstate[1] - wstate[0] == 2 * (16 - 4) * (4 + 4)
     assert len({r[2] for r in sc["flush"]["rows"]}) == 1
+    assert [r[0] for r in sc["groups"]["rows"]] == [0, 4]
+    assert sc["groups"]["data"]["check"] == {"groups": 4, "group_counts_sum_to_total": True}
+    gstate = [r[5] for r in sc["groups"]["rows"]]  # 1 + g report rows per metric
+    assert gstate[0] < gstate[1]
     e2e = [r[0] for r in sc["end_to_end"]["rows"]]
     assert len(e2e) == 4 and e2e[0] == "bare rollout" and "empty spec" in e2e[1]
     alt = [r[0] for r in sc["alternatives"]["rows"]]

@@ -88,6 +88,13 @@ def make_metrics():
         "cart_x_std": jmb.state_metrics({"cart_x": "std"}, stats=STATS)["cart_x"],
         "cart_x_min": jmb.state_metrics({"cart_x": "min"}, stats=STATS)["cart_x"],
         "upright_per_s": jmb.state_metrics(["upright"], per_second=True, stats=STATS)["upright"],
+        # Grouped by the side of the track the cart is on when the episode ends.
+        "return_by_side": jm.Term(
+            lambda t: t.state.reward,
+            reduce="sum",
+            stats=STATS,
+            groups=jm.groups(lambda t: t.state.metrics["cart_x"] > 0, ("left", "right")),
+        ),
     }
     return jm.Metrics(terms=terms)
 
@@ -197,6 +204,13 @@ def check_against_unroll(pendulum):
     report = pendulum["report"]
     for name, (values, reduce) in cases.items():
         check_report(report, name, episode_values(values, done, reduce))
+    # An episode's group is the cart's side on its last step; episodes in report order.
+    returns = episode_values(r["reward"], done, "sum")
+    right = m["cart_x"][done] > 0  # step-major, then env index: report order
+    check_report(report, "return_by_side", returns)
+    check_report(report, "return_by_side/right", returns[right])
+    check_report(report, "return_by_side/left", returns[~right])
+    assert right.any() and (~right).any()
     assert report["Counters/episodes"] == done.sum()
     assert report["Counters/env_steps"] == done.size
 

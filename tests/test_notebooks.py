@@ -132,6 +132,7 @@ def custom_terms(tmp_path_factory):
             "nan_report": {k: v for k, v in nan_report.items() if not hasattr(v, "shape")},
             "check": check.to_dict(),
             "dq_check": dq_check.to_dict(),
+            "group_check": group_check.to_dict(),
         }""",
     )
 
@@ -357,3 +358,12 @@ def test_custom_terms_discounted_returns_and_quantiles_match_numpy(custom_terms)
     for q in ("q10", "q50", "q90"):
         assert abs(got[q] - want[q]) <= 0.01 * abs(want[q]), q
     assert want["q10"] < 0 < want["q90"]  # both signs
+
+
+def test_custom_terms_groups_match_a_pandas_groupby(custom_terms):
+    t = custom_terms.probe["group_check"]
+    assert set(t["by hand count"]) == {"flat", "rough", "stairs"}  # every level has episodes
+    for level, want in t["by hand mean"].items():
+        assert t["jaxmetrics mean"][level] == pytest.approx(want, rel=1e-5), level
+        assert t["jaxmetrics count"][level] == t["by hand count"][level], level
+    assert all(t["match"].values())

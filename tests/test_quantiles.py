@@ -259,3 +259,29 @@ def test_levels_accuracy_are_part_of_the_spec_identity_and_the_logger_writes_flo
         logger.flush(m.log(m.init(0), {"v": 3.0}), step=1)
     (record,) = writer.records
     assert isinstance(record.scalars["Train/v/q50"], float)
+
+
+def test_grouped_quantiles_are_kept_per_group():
+    m = jm.Metrics(
+        terms={
+            "x": jm.Term(
+                lambda s: s["x"],
+                reduce="last",
+                stats=("count", jm.quantiles((0, 50, 100))),
+                groups=jm.groups(lambda s: s["g"], ("a", "b")),
+            )
+        }
+    )
+    rng = np.random.default_rng(3)
+    xs = rng.normal(size=(20, 6)).astype(np.float32)
+    gs = rng.integers(0, 2, (20, 6))
+    dones = rng.random((20, 6)) < 0.5
+    s = m.init(6)
+    for x, g, d in zip(xs, gs, dones):
+        s = m.update(s, {"x": jnp.asarray(x), "g": jnp.asarray(g)}, jnp.asarray(d))
+    host = m.to_host(m.compute(s))
+    assert_within(host, "Episode_Metrics/x", xs[dones], levels=(0, 50, 100))
+    for k, name in enumerate(("a", "b")):
+        values = xs[dones & (gs == k)]
+        assert host[f"Episode_Metrics/x/{name}/count"] == len(values) > 0
+        assert_within(host, f"Episode_Metrics/x/{name}", values, levels=(0, 50, 100))

@@ -11,7 +11,7 @@ import jax
 from . import _flush_cost, _isolated, _rollout, _sharded
 from ._report import Table, environment, write_json
 
-SCENARIOS = ("isolated", "scaling", "flush", "e2e", "sharded")
+SCENARIOS = ("isolated", "scaling", "groups", "flush", "e2e", "sharded")
 
 
 @dataclasses.dataclass
@@ -35,6 +35,7 @@ class Config:
     scale_windows: tuple[int, ...] = (10, 100, 1000, 10000)
     scale_steps: int = 1000
     scale_repeats: int = 5
+    group_counts: tuple[int, ...] = (1, 8, 64)
     flush_envs: tuple[int, ...] = (256, 1024, 4096, 16384, 65536)
     flush_repeats: int = 50
     sharded_per_device: int = 4096
@@ -60,6 +61,7 @@ HELP = {
     "scale_windows": "window sizes of the scaling table",
     "scale_steps": "scan length of the scaling tables",
     "scale_repeats": "timed repeats of the scaling tables",
+    "group_counts": "numbers of groups of the per-group table (isolated envs, scaling steps)",
     "flush_envs": "num_envs values of the flush table",
     "flush_repeats": "flushes timed per size",
     "sharded_per_device": "envs per device of the weak-scaling rollouts",
@@ -123,6 +125,8 @@ def run(
                 c.scale_repeats,
             )
         )
+    if "groups" in c.scenarios:
+        done(_isolated.groups(list(c.group_counts), c.num_envs, c.scale_steps, c.scale_repeats))
     if "flush" in c.scenarios:
         done(_flush_cost.flush(list(c.flush_envs), c.flush_repeats))
     if "e2e" in c.scenarios:

@@ -1,6 +1,6 @@
 """Scenarios on random inputs, without physics: the isolated update cost against the
 floor (with an ablation by feature and the ops XLA leaves in the loop), scaling in
-num_envs / number of terms / window size, and the state size."""
+num_envs / number of terms / window size / number of groups, and the state size."""
 
 import os
 
@@ -213,3 +213,54 @@ def scaling(
         "per step: its per-step cost should not grow with its size (only the state does)."
     )
     return [envs, terms, windows]
+
+
+def groups(group_list: list[int], num_envs: int, steps: int, repeats: int) -> Table:
+    """Per-group statistics: the full 10-term spec kept per group, against no groups."""
+    t = Table(
+        "groups",
+        f"Per-group statistics ({num_envs} envs, full 10-term spec, {steps}-step scan)",
+        ["groups", "us/step", "x no groups", "compile s", "ops in loop", "state bytes"],
+    )
+    xs, dones = inputs(num_envs, steps)
+    variants, infos, specs = [], {}, {}
+    for g in [0, *group_list]:
+        specs[g] = wl.random_spec(10, groups=g)
+        v, infos[g] = _prepare(
+            f"g{g}", _metrics_scan(specs[g]), specs[g].init(num_envs), xs, dones, None
+        )
+        variants.append(v)
+    tm, last = measure(variants, repeats)
+    base = tm["g0"].median_s
+    for g in [0, *group_list]:
+        i = infos[g]
+        us = tm[f"g{g}"].median_s / steps * 1e6
+        t.add(
+            g,
+            us,
+            tm[f"g{g}"].median_s / base,
+            i["compile_s"],
+            _kernels(i["loop_ops"]),
+            i["state_bytes"],
+        )
+    most = max(group_list)
+    host = specs[most].to_host(specs[most].compute(last[f"g{most}"]))
+    prefix = specs[most].prefixes["episode"]
+    split = all(
+        sum(host[f"{prefix}/m{i}/g{k}/count"] for k in range(most)) == host[f"{prefix}/m{i}/count"]
+        for i in range(10)
+    )
+    t.data = {
+        "timings": {k: vars(v) for k, v in tm.items()},
+        "loop_ops": {str(k): i["loop_ops"] for k, i in infos.items()},
+        "check": {"groups": most, "group_counts_sum_to_total": split},
+    }
+    t.notes.append(
+        f"Each env is in a random group on every step. Check: with {most} groups every "
+        f"metric's group /counts sum to its overall /count: {split}."
+    )
+    t.notes.append(
+        "A grouped metric is one report row per group plus its overall row: the per-step "
+        "work grows with rows x envs (elementwise, fused), the state with rows."
+    )
+    return t

@@ -42,20 +42,31 @@ def _row(x: jax.Array, i: int) -> jax.Array:
     return x[i]
 
 
-def random_spec(num_terms: int, window: int = 100, features: str = "full") -> jm.Metrics:
+def _group_of(x: jax.Array, n: int) -> jax.Array:
+    # Row 0 is uniform in [0, 1): each env lands in a random group on every step.
+    return jnp.minimum((x[0] * n).astype(jnp.int32), n - 1)
+
+
+def random_spec(
+    num_terms: int, window: int = 100, features: str = "full", groups: int = 0
+) -> jm.Metrics:
     """Terms `m0..m{N-1}` reading row `i % 10` of a `[10, num_envs]` step input.
 
     `features` trims the spec for the ablation table: "sum" (every term sum-reduced,
     mean+sum+count only), "simple" (mixed reductions, simple stats only), "ema", "window",
     "histogram" (simple plus that one kind), "discounted_quantiles" (simple, with the two
     sum terms discounted by 0.99 and the two histogram terms' histograms replaced by
-    `quantiles((50, 90, 99))`), "full" (everything).
+    `quantiles((50, 90, 99))`), "full" (everything). `groups > 0` keeps every statistic
+    per group too, the group of an env drawn from row 0 on every step.
     """
     terms = {}
     for i in range(num_terms):
         reduce, stats = _trim(i, pattern_stats(i, window, (0.0, 1.0)), features)
         terms[f"m{i}"] = jm.Term(_row, reduce=reduce, stats=stats, params={"i": i % 10})
-    return jm.Metrics(terms=terms)
+    grouping = None
+    if groups:
+        grouping = jm.groups(_group_of, tuple(f"g{k}" for k in range(groups)), n=groups)
+    return jm.Metrics(terms=terms, groups=grouping)
 
 
 def _trim(
