@@ -237,6 +237,8 @@ def test_other_misuse_is_refused_with_the_fix():
         jm.Metrics(terms={"x": jm.Term(lambda s: s, stats=(jm.quantiles(), jm.quantiles()))})
     with pytest.raises(ValueError, match=r"Use jaxmetrics.quantiles\(...\) for it"):
         jm.Metrics(terms={"x": jm.Term(lambda s: s, stats=("quantile",))})
+    with pytest.raises(ValueError, match="group name 'q50' is also a statistic's name"):
+        jm.groups(lambda s: s, ("q50", "rest"))  # <m>/q50 would read as a quantile
     with pytest.raises(ValueError, match="tag collision: .*'Episode_Metrics/x/q50'"):
         jm.Metrics(
             terms={
