@@ -10,6 +10,8 @@ from ._logger import NonFiniteError as NonFiniteError
 from ._logger import WriterError as WriterError
 from ._logger import WriterTimeoutError as WriterTimeoutError
 from ._metrics import Metrics as Metrics
+from ._reductions import Discounted as Discounted
+from ._reductions import discounted as discounted
 from ._report import HistogramData as HistogramData
 from ._report import Record as Record
 from ._report import Writer as Writer
@@ -17,11 +19,13 @@ from ._spec import Ema as Ema
 from ._spec import Groups as Groups
 from ._spec import Histogram as Histogram
 from ._spec import Logged as Logged
+from ._spec import Quantiles as Quantiles
 from ._spec import Term as Term
 from ._spec import Window as Window
 from ._spec import ema as ema
 from ._spec import groups as groups
 from ._spec import histogram as histogram
+from ._spec import quantiles as quantiles
 from ._spec import window as window
 from ._state import MetricsState as MetricsState
 from ._tags import TagInfo as TagInfo
@@ -39,6 +43,7 @@ __version__ = "0.1.0"
 __all__ = [
     "ConsoleWriter",
     "Count",
+    "Discounted",
     "Ema",
     "Groups",
     "Histogram",
@@ -52,6 +57,7 @@ __all__ = [
     "Metrics",
     "MetricsState",
     "NonFiniteError",
+    "Quantiles",
     "Record",
     "TagInfo",
     "TensorBoardWriter",
@@ -62,9 +68,11 @@ __all__ = [
     "Writer",
     "WriterError",
     "WriterTimeoutError",
+    "discounted",
     "ema",
     "groups",
     "histogram",
+    "quantiles",
     "window",
     "wrap_step",
 ]

@@ -82,10 +82,12 @@ def _count_overflow(row: dict[str, Any]) -> dict[str, Any]:
     """Adds to a row's `nonfinite` count the statistics that overflowed the dtype: a
     period statistic that is not finite although the period has values (all finite: the
     others were left out), or an EMA or window statistic that is infinite (values near
-    float32's limit: their sum is inf, their mean NaN). Such a statistic is not written,
-    so the count is what makes the loss visible (warned about or raised at flush)."""
+    float32's limit: their sum is inf, their mean NaN), or a quantile that fell on values
+    outside its sketch's magnitude range. Such a statistic is not written, so the count
+    is what makes the loss visible (warned about or raised at flush)."""
     has = ~_count.is_zero(row["count"])
-    bad = [has & ~jnp.isfinite(row[k]) for k in ("mean", "std", "sum")]
+    quantiles = [k for k in row if _statistics.get(k).source == "quantiles"]
+    bad = [has & ~jnp.isfinite(row[k]) for k in ("mean", "std", "sum", *quantiles)]
     bad += [
         jnp.isinf(v)
         for k, v in row.items()
@@ -140,8 +142,7 @@ def _flatten_terms(
             reduces = {o: t.reduce.get(o, "mean") for o in outputs}
         else:
             reduces = {o: t.reduce for o in outputs}
-        for r in reduces.values():
-            _reductions.check(r, where)
+        reduces = {o: _reductions.check(r, where) for o, r in reduces.items()}
         stats = parse_stats(t.stats, where)
         nonfinite = check_policy(t.nonfinite if t.nonfinite is not None else policy, where)
         grouping = t.groups if t.groups is not None else default_groups
@@ -269,7 +270,10 @@ class Metrics:
         self.dtype = dt
 
         # Episode rows sorted by reduction (stable): each reduction is one block.
-        order = sorted(range(len(ep_specs)), key=lambda i: _episode.ORDER.index(ep_specs[i].reduce))
+        order = sorted(
+            range(len(ep_specs)),
+            key=lambda i: _episode.ORDER.index(_reductions.name(ep_specs[i].reduce)),
+        )
         self._ep_rows = tuple(ep_specs[i] for i in order)
         # Per episode row, the index of its grouping in self._groupings (None: ungrouped).
         self._ep_row_groups = tuple(

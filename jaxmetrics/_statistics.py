@@ -16,13 +16,15 @@ class Statistic(NamedTuple):
     """One statistic.
 
     Attributes:
-      name: `TagInfo.stat`; a template for the percentile family (see `percentile`).
+      name: `TagInfo.stat`; a template for the window percentile and the quantile
+        families (see `percentile` and `quantile`).
       suffix: what follows `<prefix>/<metric>` in its tag ("" for the mean).
       source: what asks for it. "simple": its name among a metric's `stats`; "ema",
-        "window", "percentile", "histogram": the matching `jaxmetrics.ema/window/
-        histogram(...)`; "always": every metric; "running": `include_running`;
-        "counter": every counter; "logger": added by the `Logger` from another tag;
-        "seeds": the `Logger`'s cross-seed summary run (`_seeds`), of a seed tag.
+        "window", "percentile", "histogram", "quantiles": the matching
+        `jaxmetrics.ema/window/histogram/quantiles(...)`; "always": every metric;
+        "running": `include_running`; "counter": every counter; "logger": added by the
+        `Logger` from another tag; "seeds": the `Logger`'s cross-seed summary run
+        (`_seeds`), of a seed tag.
       host: what a `Record` holds. "float": a float, left out when not finite;
         "exact": an exact int; "sparse": an exact int written from its first non-zero
         value on; "histogram": `HistogramData`; "window": the finite window contents.
@@ -37,6 +39,7 @@ class Statistic(NamedTuple):
 
 
 _PERCENTILE = "window_p{p:g}"
+_QUANTILE = "q{p:g}"
 
 STATISTICS = (
     Statistic("mean", "", "simple", "float", "mean"),
@@ -53,6 +56,7 @@ STATISTICS = (
     Statistic("window_values", "/window_values", "window", "window"),
     Statistic(_PERCENTILE, "/" + _PERCENTILE, "percentile", "float"),
     Statistic("histogram", "/histogram", "histogram", "histogram"),
+    Statistic(_QUANTILE, "/" + _QUANTILE, "quantiles", "float"),
     Statistic("nonfinite", "/nonfinite", "always", "sparse"),
     Statistic("running", "/running", "running", "float"),
     Statistic("total", "", "counter", "exact", "count"),
@@ -77,7 +81,8 @@ COLUMNS = tuple(dict.fromkeys(s.column for s in STATISTICS if s.column is not No
 """The console's columns, in order."""
 
 _BY_NAME = {s.name: s for s in STATISTICS}
-_PERCENTILE_PREFIX = _PERCENTILE.split("{", 1)[0]
+# A family member's name is its template's prefix followed by a number.
+_FAMILIES = {t.split("{", 1)[0]: t for t in (_PERCENTILE, _QUANTILE)}
 
 
 def percentile(p: float) -> str:
@@ -85,15 +90,22 @@ def percentile(p: float) -> str:
     return _PERCENTILE.format(p=p)
 
 
+def quantile(p: float) -> str:
+    """The statistic name of period quantile `p` (a percentile): `q50`, `q99.9`."""
+    return _QUANTILE.format(p=p)
+
+
 def get(name: str) -> Statistic:
-    """The registry entry of `name` (a window percentile resolves to its family).
+    """The registry entry of `name` (a window percentile or a quantile resolves to its
+    family).
 
     Raises:
       KeyError: for a name that is not a statistic.
     """
     found = _BY_NAME.get(name)
-    if found is None and name.startswith(_PERCENTILE_PREFIX):
-        return _BY_NAME[_PERCENTILE]._replace(name=name, suffix="/" + name)
+    for prefix, template in _FAMILIES.items():
+        if found is None and name.startswith(prefix) and name[len(prefix) :][:1].isdigit():
+            return _BY_NAME[template]._replace(name=name, suffix="/" + name)
     if found is None:
         raise KeyError(f"{name!r} is not a jaxmetrics statistic.")
     return found
@@ -113,6 +125,8 @@ def reported(stats: "StatSpec") -> list[str]:
     for s in STATISTICS:
         if s.source == "percentile" and stats.window is not None:
             out += [percentile(p) for p in stats.window.percentiles]
+        elif s.source == "quantiles" and stats.quantiles is not None:
+            out += [quantile(p) for p in stats.quantiles.levels]
         elif s.source in wants and wants[s.source](s):
             out.append(s.name)
     return out

@@ -2,8 +2,8 @@
 
 A stream receives batches `values[R, B]` with a boolean `mask[R, B]`; within a row, the
 masked-in values arrive in ascending column order (for episodes: ascending env index).
-Period statistics (count/mean/std/min/max/sum/histogram/nonfinite) reset with
-`reset_period`; EMA and windows persist.
+Period statistics (count/mean/std/min/max/sum/histogram/quantile sketch/nonfinite) reset
+with `reset_period`; EMA and windows persist.
 
 Each `add` is one arrival step: `steps` counts them, and every value kept in a ring
 buffer (windows, EMA history) carries the step it arrived on. That stamp is what lets
@@ -24,10 +24,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _count
+from . import _count, _sketch, _statistics
 from ._count import Count
 from ._layout import gathered
 from ._numerics import kahan_add
+from ._sketch import SketchGroup
 from ._spec import MetricSpec
 
 
@@ -64,6 +65,7 @@ class StreamState(NamedTuple):
     steps: jax.Array  # [] uint32: arrival steps so far (wraps; only differences are used)
     windows: tuple[Ring, ...]  # one per distinct window size
     hists: tuple[Count, ...]  # one per distinct bin count: [R_h, bins + 2] incl. under/overflow
+    sketches: tuple[Count, ...]  # one per distinct quantile accuracy: [R_q, slots] (`_sketch`)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,6 +117,7 @@ class StreamPlan:
     windows: tuple[WindowGroup, ...]
     hists: tuple[HistGroup, ...]
     dtype: jnp.dtype
+    sketches: tuple[SketchGroup, ...] = ()
 
     @property
     def ranked_rows(self) -> tuple[int, ...]:
@@ -154,7 +157,21 @@ class StreamPlan:
                     tuple(rows[i].stats.histogram.range[1] for i in idx),  # type: ignore[union-attr]
                 )
             )
-        return cls(rows, ema_rows, coeffs, ema_groups, windows, tuple(hists), jnp.dtype(dtype))
+        accuracies = sorted({r.stats.quantiles.accuracy for r in rows if r.stats.quantiles})
+        sketches = tuple(
+            SketchGroup(
+                a,
+                tuple(
+                    i
+                    for i, r in enumerate(rows)
+                    if r.stats.quantiles and r.stats.quantiles.accuracy == a
+                ),
+            )
+            for a in accuracies
+        )
+        return cls(
+            rows, ema_rows, coeffs, ema_groups, windows, tuple(hists), jnp.dtype(dtype), sketches
+        )
 
 
 def _ring(rows: int, size: int, dt) -> Ring:
@@ -193,6 +210,7 @@ def init(plan: StreamPlan, ema_history: bool = False) -> StreamState:
         steps=jnp.zeros((), jnp.uint32),
         windows=tuple(_ring(len(g.rows), g.size, dt) for g in plan.windows),
         hists=tuple(_count.zeros((len(g.rows), g.bins + 2)) for g in plan.hists),
+        sketches=tuple(_count.zeros((len(g.rows), g.slots)) for g in plan.sketches),
     )
 
 
@@ -239,7 +257,7 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     vmin = jnp.minimum(s.min, bmin)
     vmax = jnp.maximum(s.max, bmax)
 
-    if plan.ema_rows or plan.windows or plan.hists:
+    if plan.ema_rows or plan.windows or plan.hists or plan.sketches:
         values, mask = gathered(values), gathered(mask)
     # One arrival rank (a cumsum over envs, the costliest op here) shared by every row
     # that needs one: EMA and window rows.
@@ -283,6 +301,10 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
         _hist_add(g, h, _take(g.rows, values), _take(g.rows, mask), dt)
         for g, h in zip(plan.hists, s.hists)
     )
+    sketches = tuple(
+        _sketch.add(c, _sketch.slot(g, _take(g.rows, values), _take(g.rows, mask)))
+        for g, c in zip(plan.sketches, s.sketches)
+    )
     return s._replace(
         count=_count.add(s.count, k),
         mean=mean,
@@ -300,6 +322,7 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
         steps=s.steps + jnp.uint32(1),
         windows=windows,
         hists=hists,
+        sketches=sketches,
     )
 
 
@@ -520,6 +543,7 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
         steps=a.steps,
         windows=windows,
         hists=tuple(_count.merge(x, y) for x, y in zip(a.hists, b.hists)),
+        sketches=tuple(_count.merge(x, y) for x, y in zip(a.sketches, b.sketches)),
     )
 
 
@@ -629,4 +653,9 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
     for g, h in zip(plan.hists, s.hists):
         for j, i in enumerate(g.rows):
             out[i]["histogram"] = Count(h.hi[j], h.lo[j])
+    for g, c in zip(plan.sketches, s.sketches):
+        levels = tuple(plan.rows[i].stats.quantiles.levels for i in g.rows)  # type: ignore[union-attr]
+        for i, ls, vals in zip(g.rows, levels, _sketch.quantiles(g, c, levels, dt)):
+            for j, p in enumerate(ls):
+                out[i][_statistics.quantile(p)] = vals[j]
     return out

@@ -340,6 +340,7 @@ def repeated():
             "pole_speed_max": jmb.joint_velocity([1], ord=np.inf, reduce="max", stats=STATS),
             "truncated": jmb.truncation_rate(stats=STATS),
             **jmb.state_metrics({"upright": "sum", "cart_x": "last"}, stats=STATS),
+            "discounted": jm.Term(lambda t: t.state.reward, reduce=jm.discounted(0.9), stats=STATS),
         }
     )
     ours = jmb.wrap(
@@ -430,6 +431,16 @@ def test_action_repeat_folds_every_substep(repeated):
     }
     for name, (values, reduce) in cases.items():
         check_report(report, name, episode_values(values, sub_done, reduce))
+    # Every sub-step is a step of the discount: t = env step * REPEAT + sub-step.
+    rewards = flat(lambda s: s["reward"]).astype(np.float64)
+    discounted, total, t = [], np.zeros(NUM_ENVS), np.zeros(NUM_ENVS, int)
+    for k in range(rewards.shape[0]):
+        total += 0.9**t * rewards[k]
+        t += 1
+        for e in np.flatnonzero(sub_done[k]):
+            discounted.append(total[e])
+            total[e], t[e] = 0.0, 0
+    check_report(report, "discounted", np.asarray(discounted))
     assert report["Counters/env_steps"] == REPEAT_STEPS * REPEAT * NUM_ENVS
     # Env-step view of the same mean: average each env step's sub-step mean.
     step_means = np.linalg.norm(qd.astype(np.float64), axis=-1).reshape(REPEAT_STEPS, REPEAT, -1)

@@ -1,6 +1,7 @@
 """A MetricsState saved mid-run (orbax-checkpoint, flax.serialization) and restored into a
 fresh process's spec continues exactly as the uninterrupted run: windows, EMA, histograms,
-counters and running episodes carry over bit for bit, sharded or not."""
+quantile sketches, counters and running episodes (discounted returns included) carry over
+bit for bit, sharded or not."""
 
 import os
 import subprocess
@@ -30,6 +31,7 @@ def spec():
                 stats=("mean", "std", "min", "max", "count", jm.ema(0.1), jm.window(5, (50,))),
             ),
             "h": jm.Term(lambda x: x, stats=(jm.histogram(4, (0.0, 4.0)),)),
+            "d": jm.Term(lambda x: x, reduce=jm.discounted(0.9), stats=(jm.quantiles((50, 90)),)),
         },
         logged=["loss"],
         counters=["updates"],

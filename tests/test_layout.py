@@ -27,6 +27,7 @@ CORE = {
     "_metrics",
     "_numerics",
     "_reductions",
+    "_sketch",
     "_spec",
     "_state",
     "_statistics",
@@ -101,7 +102,7 @@ def test_old_module_names_are_gone():
 
 def every_stat_metrics() -> jm.Metrics:
     stats = (*_statistics.SIMPLE_STATS, jm.ema(0.5), jm.window(3, (10, 99.9)))
-    stats += (jm.histogram(2, (0.0, 1.0)),)
+    stats += (jm.histogram(2, (0.0, 1.0)), jm.quantiles((50, 99.9)))
     return jm.Metrics(
         terms={"r": jm.Term(lambda x: x, stats=stats)},
         logged={"loss": jm.Logged(stats=stats)},
@@ -122,7 +123,7 @@ def test_every_tag_is_its_metric_tag_plus_the_registry_suffix():
     with jm.Logger(metrics, [], include_running=True) as logger:
         tags = logger.tags
     stats = {i.stat for i in tags}
-    assert {"total", "per_sec", "running", "window_p10", "window_p99.9"} <= stats
+    assert {"total", "per_sec", "running", "window_p10", "window_p99.9", "q50", "q99.9"} <= stats
     assert "histogram/underflow" in stats
     prefixes = {"episode": "Episode_Metrics", "logged": "Train", "counter": "Counters"}
     for i in tags:
@@ -137,12 +138,18 @@ def test_console_columns_and_simple_stats_come_from_the_registry():
     assert _statistics.SIMPLE_STATS == ("mean", "std", "min", "max", "sum", "count")
     with pytest.raises(KeyError, match="'median' is not a jaxmetrics statistic"):
         _statistics.get("median")
+    with pytest.raises(KeyError, match="'quality' is not a jaxmetrics statistic"):
+        _statistics.get("quality")  # a family member is its prefix and a number
+    assert _statistics.get("q99.9").suffix == "/q99.9"
 
 
 def test_reductions_registry_matches_the_episode_blocks_and_the_helpers():
     assert sorted(_reductions.NAMES) == sorted(_episode.ORDER)
+    built = {"discounted": jm.discounted(0.9)}  # the reductions that take a parameter
+    assert set(built) == {r.name for r in _reductions.REDUCTIONS if r.builder is not None}
     for r in _reductions.NAMES:
-        jm.Metrics(terms={"x": jm.Term(lambda s: s, reduce=r)})
+        jm.Metrics(terms={"x": jm.Term(lambda s: s, reduce=built.get(r, r))})
+        assert _reductions.name(built.get(r, r)) == r
     flags = [r for r in _reductions.NAMES if r in _reductions.FLAG_REDUCTIONS]
     assert flags == ["mean", "max", "min", "last"]
     for r in _reductions.NAMES:

@@ -131,6 +131,7 @@ def custom_terms(tmp_path_factory):
             "report": {k: v for k, v in report.items() if not hasattr(v, "shape")},
             "nan_report": {k: v for k, v in nan_report.items() if not hasattr(v, "shape")},
             "check": check.to_dict(),
+            "dq_check": dq_check.to_dict(),
             "group_check": group_check.to_dict(),
         }""",
     )
@@ -346,6 +347,17 @@ def test_custom_terms_smoothing_matches_numpy(custom_terms):
     for stat, want in t["numpy"].items():
         assert t["jaxmetrics"][stat] == pytest.approx(want, rel=1e-5), stat
     assert images(cell(custom_terms.nb, "smoothing")) == 1
+
+
+@pytest.mark.slow
+def test_custom_terms_discounted_returns_and_quantiles_match_numpy(custom_terms):
+    t = custom_terms.probe["dq_check"]
+    got, want = t["jaxmetrics"], t["numpy"]
+    assert got["episodes"] == want["episodes"] > 100
+    assert got["mean discounted return"] == pytest.approx(want["mean discounted return"], 1e-5)
+    for q in ("q10", "q50", "q90"):
+        assert abs(got[q] - want[q]) <= 0.01 * abs(want[q]), q
+    assert want["q10"] < 0 < want["q90"]  # both signs
 
 
 def test_custom_terms_groups_match_a_pandas_groupby(custom_terms):

@@ -68,6 +68,7 @@ ABLATION = (
     ("ema", "  + EMA (2 terms)"),
     ("window", "  + window(100) (2 terms)"),
     ("histogram", "  + histogram(20) (2 terms)"),
+    ("discounted_quantiles", "  2 sums -> discounted(0.99), + quantiles(1%) (2 terms)"),
     ("full", "jaxmetrics: full 10-term spec"),
 )
 

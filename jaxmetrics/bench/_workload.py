@@ -54,8 +54,10 @@ def random_spec(
 
     `features` trims the spec for the ablation table: "sum" (every term sum-reduced,
     mean+sum+count only), "simple" (mixed reductions, simple stats only), "ema", "window",
-    "histogram" (simple plus that one kind), "full" (everything). `groups > 0` keeps every
-    statistic per group too, the group of an env drawn from row 0 on every step.
+    "histogram" (simple plus that one kind), "discounted_quantiles" (simple, with the two
+    sum terms discounted by 0.99 and the two histogram terms' histograms replaced by
+    `quantiles((50, 90, 99))`), "full" (everything). `groups > 0` keeps every statistic
+    per group too, the group of an env drawn from row 0 on every step.
     """
     terms = {}
     for i in range(num_terms):
@@ -67,10 +69,17 @@ def random_spec(
     return jm.Metrics(terms=terms, groups=grouping)
 
 
-def _trim(i: int, stats: tuple[Any, ...], features: str) -> tuple[str, tuple[Any, ...]]:
+def _trim(
+    i: int, stats: tuple[Any, ...], features: str
+) -> tuple[str | jm.Discounted, tuple[Any, ...]]:
     """Pattern term `i`'s reduction and statistics, trimmed to `features`."""
     if features == "sum":
         return "sum", ("mean", "sum", "count")
+    if features == "discounted_quantiles":
+        simple = tuple(s for s in stats if isinstance(s, str))
+        if any(isinstance(s, jm.Histogram) for s in stats):
+            simple += (jm.quantiles((50, 90, 99)),)
+        return (jm.discounted(0.99) if PATTERN[i % 10] == "sum" else PATTERN[i % 10]), simple
     if features != "full":
         keep = {"ema": jm.Ema, "window": jm.Window, "histogram": jm.Histogram}.get(features)
         stats = tuple(s for s in stats if isinstance(s, str) or (keep and isinstance(s, keep)))

@@ -41,8 +41,9 @@ class Transition(NamedTuple):
     and every sub-step is a step of the episode: a "mean" term is the mean over all
     sub-steps (equal to averaging each env step's sub-step mean), a "sum" term sums every
     sub-step (as Brax sums rewards), "max"/"min" run over all sub-steps, "last" is the
-    last sub-step's value. The episode ends on the last sub-step of the env step where
-    `done` is set.
+    last sub-step's value, `jaxmetrics.discounted(gamma)` discounts per sub-step (`t` =
+    env step x `action_repeat` + sub-step). The episode ends on the last sub-step of the
+    env step where `done` is set.
 
     Attributes:
       prev_state: the inner (batched) env's `State` before this sub-step; on the first
