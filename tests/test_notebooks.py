@@ -360,6 +360,7 @@ def test_custom_terms_discounted_returns_and_quantiles_match_numpy(custom_terms)
     assert want["q10"] < 0 < want["q90"]  # both signs
 
 
+@pytest.mark.slow
 def test_custom_terms_groups_match_a_pandas_groupby(custom_terms):
     t = custom_terms.probe["group_check"]
     assert set(t["by hand count"]) == {"flat", "rough", "stairs"}  # every level has episodes
