@@ -1,7 +1,11 @@
-"""Per-env episode accumulators, stacked over metrics and grouped by reduction.
+"""Per-env episode accumulators, stacked over metrics: three `[rows, num_envs]` arrays.
 
-Rows are ordered by reduction (`ORDER`), so each reduction works on one contiguous
-block `[rows, num_envs]`. The step on which an episode ends is folded in before the
+Every reduction keeps its running episode in the same three arrays (`EpisodeState`):
+a step counter and two float slots whose meaning depends on the row's reduction
+(`SLOTS`). One elementwise pass updates every row, selecting per row what its
+reduction computes, so the whole fold of a step is one fused kernel whatever the mix
+of reductions, and XLA can update the accumulators in place. Rows are ordered by
+reduction (`ORDER`). The step on which an episode ends is folded in before the
 episode value is read; then that env's accumulators reset.
 """
 
@@ -11,28 +15,34 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._numerics import kahan_add
 
 ORDER = ("mean", "std", "sum", "max", "min", "last")
 
+# Per reduction: what the slots `a` and `b` hold, and their values at episode start.
+SLOTS = {
+    "mean": ("Welford mean", 0.0, "unused", 0.0),
+    "std": ("Welford mean", 0.0, "Welford sum of squared deviations", 0.0),
+    "sum": ("sum", 0.0, "Kahan compensation of the sum", 0.0),
+    "max": ("max", -np.inf, "unused", 0.0),
+    "min": ("min", np.inf, "unused", 0.0),
+    "last": ("last value", np.nan, "unused", 0.0),
+}
+
 
 class EpisodeState(NamedTuple):
-    """Running episodes of every env. Row blocks follow `ORDER`."""
+    """Running episodes of every env; what `a` and `b` hold per row is `SLOTS`."""
 
     steps: jax.Array  # [M, E] int32: steps folded into the running episode (finite ones)
-    mean: jax.Array  # [M_mean + M_std, E] float: Welford mean
-    m2: jax.Array  # [M_std, E] float: Welford sum of squared deviations
-    sum: jax.Array  # [M_sum, E] float, Kahan-compensated by sum_c
-    sum_c: jax.Array  # [M_sum, E] float
-    max: jax.Array  # [M_max, E] float, -inf at episode start
-    min: jax.Array  # [M_min, E] float, +inf at episode start
-    last: jax.Array  # [M_last, E] float, NaN at episode start
+    a: jax.Array  # [M, E] float: the reduction's running value (see SLOTS)
+    b: jax.Array  # [M, E] float: its second slot (see SLOTS), 0 where unused
 
 
 @dataclasses.dataclass(frozen=True)
 class EpisodePlan:
-    """How many rows each reduction has (rows are sorted by `ORDER`)."""
+    """The reduction of each row (rows sorted by `ORDER`)."""
 
     sizes: tuple[int, ...]  # per reduction in ORDER
     dtype: jnp.dtype
@@ -45,32 +55,38 @@ class EpisodePlan:
     def rows(self) -> int:
         return sum(self.sizes)
 
-    def block(self, name: str) -> slice:
-        i = ORDER.index(name)
-        start = sum(self.sizes[:i])
-        return slice(start, start + self.sizes[i])
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return tuple(k for k, n in zip(ORDER, self.sizes) for _ in range(n))
+
+    def column(self, fn) -> np.ndarray:
+        """`[rows, 1]` numpy column of `fn(reduction)` per row (a constant in-graph)."""
+        return np.array([fn(k) for k in self.kinds], dtype=np.float64).reshape(-1, 1)
+
+    def is_(self, *names: str) -> np.ndarray:
+        """`[rows, 1]` bool column: whether each row's reduction is one of `names`."""
+        return np.array([k in names for k in self.kinds], dtype=bool).reshape(-1, 1)
 
 
-# Value of each EpisodeState field at the start of an episode.
-_START = EpisodeState(
-    steps=0, mean=0.0, m2=0.0, sum=0.0, sum_c=0.0, max=-jnp.inf, min=jnp.inf, last=jnp.nan
-)
+def _start(plan: EpisodePlan) -> tuple[np.ndarray, np.ndarray]:
+    return plan.column(lambda k: SLOTS[k][1]), plan.column(lambda k: SLOTS[k][3])
 
 
 def init(plan: EpisodePlan, num_envs: int) -> EpisodeState:
-    n = dict(zip(ORDER, plan.sizes))
-    rows = EpisodeState(
-        steps=plan.rows,
-        mean=n["mean"] + n["std"],
-        m2=n["std"],
-        sum=n["sum"],
-        sum_c=n["sum"],
-        max=n["max"],
-        min=n["min"],
-        last=n["last"],
+    a0, b0 = _start(plan)
+    shape = (plan.rows, num_envs)
+    return EpisodeState(
+        jnp.zeros(shape, jnp.int32),
+        jnp.broadcast_to(jnp.asarray(a0, plan.dtype), shape),
+        jnp.broadcast_to(jnp.asarray(b0, plan.dtype), shape),
     )
-    dtypes = EpisodeState(jnp.int32, *(plan.dtype,) * 7)
-    return EpisodeState(*(jnp.full((r, num_envs), v, dt) for r, v, dt in zip(rows, _START, dtypes)))
+
+
+def _values(plan: EpisodePlan, steps, a, b) -> jax.Array:
+    """Each row's episode value from its slots (meaningful where steps > 0)."""
+    n = jnp.maximum(steps, 1).astype(plan.dtype)
+    std = jnp.sqrt(b / n) if plan.sizes[1] else a
+    return jnp.where(plan.is_("std"), std, jnp.where(plan.is_("sum"), a - b, a))
 
 
 def step(
@@ -82,58 +98,42 @@ def step(
     `done`), and whether each env's episode has any folded step (`[M, E]` bool).
     """
     steps = ep.steps + fold.astype(jnp.int32)
-    b = plan.block
-    welford = slice(b("mean").start, b("std").stop)
-    xw, fw = x[welford], fold[welford]
-    nw = jnp.maximum(steps[welford], 1).astype(plan.dtype)
+    a, b = ep.a, ep.b
+    # Every reduction's update on every row, each row then keeps its own (a select per
+    # reduction, not a kernel per block of rows).
+    nw = jnp.maximum(steps, 1).astype(plan.dtype)
     # An infinite mean stays infinite under finite steps or the same infinity (as numpy's
     # mean does) instead of turning into NaN through inf - inf; only "propagate" lets
     # infinities in at all.
-    stays = jnp.isinf(ep.mean) & (jnp.isfinite(xw) | (xw == ep.mean))
-    delta = jnp.where(fw & ~stays, xw - ep.mean, 0)
-    mean = ep.mean + delta / nw
-    std_in_w = slice(b("std").start - welford.start, b("std").stop - welford.start)
-    m2 = ep.m2 + jnp.where(fw[std_in_w], delta[std_in_w] * (xw - mean)[std_in_w], 0)
-
-    xs, fs = x[b("sum")], fold[b("sum")]
-    t, sum_c = kahan_add(ep.sum, ep.sum_c, jnp.where(fs, xs, 0))
-
-    vmax = jnp.where(fold[b("max")], jnp.maximum(ep.max, x[b("max")]), ep.max)
-    vmin = jnp.where(fold[b("min")], jnp.minimum(ep.min, x[b("min")]), ep.min)
-    last = jnp.where(fold[b("last")], x[b("last")], ep.last)
-
-    nstd = jnp.maximum(steps[b("std")], 1).astype(plan.dtype)
-    values = jnp.concatenate(
-        [
-            mean[: plan.sizes[0]],
-            jnp.sqrt(m2 / nstd),
-            t - sum_c,
-            vmax,
-            vmin,
-            last,
-        ],
-        axis=0,
+    stays = jnp.isinf(a) & (jnp.isfinite(x) | (x == a))
+    delta = jnp.where(fold & ~stays, x - a, 0)
+    mean = a + delta / nw
+    m2 = b + jnp.where(fold, delta * (x - mean), 0)
+    total, comp = kahan_add(a, b, jnp.where(fold, x, 0))
+    vmax = jnp.where(fold, jnp.maximum(a, x), a)
+    vmin = jnp.where(fold, jnp.minimum(a, x), a)
+    last = jnp.where(fold, x, a)
+    is_ = plan.is_
+    new_a = jnp.where(
+        is_("mean", "std"),
+        mean,
+        jnp.where(
+            is_("sum"), total, jnp.where(is_("max"), vmax, jnp.where(is_("min"), vmin, last))
+        ),
     )
-    new = EpisodeState(steps, mean, m2, t, sum_c, vmax, vmin, last)
+    new_b = jnp.where(is_("std"), m2, jnp.where(is_("sum"), comp, b))
+    values = _values(plan, steps, new_a, new_b)
     d = done[None, :]
-    # Start values as scalars (not fresh arrays), so the reset keeps each field's sharding.
-    reset = EpisodeState(*(jnp.where(d, v0, v) for v0, v in zip(_START, new)))
+    a0, b0 = _start(plan)
+    # Start values as constant columns, so the reset keeps each field's sharding.
+    reset = EpisodeState(
+        jnp.where(d, 0, steps),
+        jnp.where(d, jnp.asarray(a0, plan.dtype), new_a),
+        jnp.where(d, jnp.asarray(b0, plan.dtype), new_b),
+    )
     return reset, values, steps > 0
 
 
 def running(plan: EpisodePlan, ep: EpisodeState) -> jax.Array:
     """Current value of every running episode `[M, E]` (NaN where it has no step yet)."""
-    b = plan.block
-    nstd = jnp.maximum(ep.steps[b("std")], 1).astype(plan.dtype)
-    values = jnp.concatenate(
-        [
-            ep.mean[: plan.sizes[0]],
-            jnp.sqrt(ep.m2 / nstd),
-            ep.sum - ep.sum_c,
-            ep.max,
-            ep.min,
-            ep.last,
-        ],
-        axis=0,
-    )
-    return jnp.where(ep.steps > 0, values, jnp.nan)
+    return jnp.where(ep.steps > 0, _values(plan, ep.steps, ep.a, ep.b), jnp.nan)

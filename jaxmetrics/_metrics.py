@@ -537,6 +537,10 @@ class Metrics:
         ended = done[None, :] & any_step
         ok = ended & (jnp.isfinite(values) | prop)
         bad = (~finite).astype(jnp.int32) + (ended & ~ok).astype(jnp.int32)
+        # Materialized once: without the barrier XLA recomputes the episode values from
+        # the old accumulators inside each reduction, which makes it copy them every step
+        # (H100, isolated update: 13.3 instead of 16.4 us/step for the simple spec).
+        values, ok, bad = jax.lax.optimization_barrier((values, ok, bad))
 
         def by_shard(a: jax.Array) -> jax.Array:
             # [M, E] -> [S, M, E/S]: shard s gets the s-th block of envs. With the env axis
@@ -548,9 +552,9 @@ class Metrics:
         assert plan is not None
 
         def fold(st, v, m, n):
-            return _stream.add_nonfinite(_stream.add(plan, st, v, m), n)
+            return _stream.add(plan, st, v, m, n)
 
-        args = (state.finished, by_shard(values), by_shard(ok), jnp.sum(by_shard(bad), axis=2))
+        args = (state.finished, by_shard(values), by_shard(ok), by_shard(bad))
         if shards == 1:
             # One shard: the plain fold (a vmap of size 1 still batches its scatters).
             first = jax.tree.map(lambda a: a[0], args)
@@ -607,8 +611,8 @@ class Metrics:
             m = m.at[i, : a.shape[0]].set(True)
         finite = jnp.isfinite(v)
         ok = m & (finite | jnp.asarray(self._lg_propagate)[:, None])
-        logged = _stream.add(self._lg_plan, state.logged, v, ok)
-        logged = _stream.add_nonfinite(logged, jnp.sum(m & ~finite, axis=1, dtype=jnp.int32))
+        bad = (m & ~finite).astype(jnp.int32)
+        logged = _stream.add(self._lg_plan, state.logged, v, ok, bad)
         return state._replace(logged=logged)
 
     def increment(self, state: MetricsState, name: str, by: Any = 1) -> MetricsState:
