@@ -221,11 +221,12 @@ def add(
     counts `nonfinite[R, B]` (int32, per entry) into the period's non-finite counts."""
     dt = plan.dtype
     wt = _weight_dtype(dt)
-    has = ~_count.is_zero(s.count)
     # Deviations from the running mean keep the moments small, so float32 stays accurate
-    # for data far from zero; a period's first batch has no mean yet and is folded as it
-    # is (Chan's pairwise update below is exact for constant data either way).
-    shift = jnp.where(has, s.mean, jnp.zeros_like(s.mean))
+    # for data far from zero. An empty period's mean is 0 (init, reset_period and merge
+    # keep it so), so its first batch is folded as it is (Chan's pairwise update is
+    # exact for constant data either way). No `count > 0` test here: with it XLA left
+    # the shifted values out of the reduction's kernel (one more kernel per step).
+    shift = s.mean
     if nonfinite is None:
         nonfinite = jnp.zeros(values.shape, jnp.int32)
     k, bsum, bmin, bmax, mb, m2b, bad = _batch(values, mask, nonfinite, shift, wt)
@@ -293,7 +294,9 @@ def add(
     )
     return s._replace(
         count=_count.add(s.count, k),
-        nonfinite=_count.add(s.nonfinite, bad),
+        # `k < 0` never holds: reading `k` here lets XLA update this count in the same
+        # kernel as the other [R] fields (sibling fusions must share an operand).
+        nonfinite=_count.add(s.nonfinite, jnp.where(k < 0, 0, bad)),
         mean=mean,
         m2=m2,
         m2_c=m2_c,
@@ -387,6 +390,10 @@ def batch_one_pass(values, mask, nonfinite, shift, wt):
         lo, hi = jnp.minimum(lo_a, lo_b), jnp.maximum(hi_a, hi_b)
         return ka + kb, sa + sb, lo, hi, m, q, na + nb
 
+    # Deviations from `shift` (the running mean) go in, not the values: taking the shift
+    # off the batch's mean afterwards saves ~1 us/step on an H100 but rounds Chan's
+    # delta to the ulp of the mean, a variance bias of ~(ulp/sigma)^2 for data far from
+    # zero (1e-4 relative at mean 1e6, std 1).
     return jax.lax.reduce(operands, inits, combine, (1,))
 
 

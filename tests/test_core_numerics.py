@@ -138,6 +138,11 @@ def test_one_pass_and_two_pass_batch_moments_agree():
         for i in (0, 2, 3, 6):  # count, min, max, non-finite count: exact
             np.testing.assert_array_equal(one[i], two[i])
         np.testing.assert_allclose(one[1], two[1], rtol=1e-6)  # sum
-        np.testing.assert_allclose(one[4], two[4], rtol=1e-6, atol=1e-3)  # mean - shift
-        np.testing.assert_allclose(one[5], two[5], rtol=1e-4)  # squared deviations
+        # Mean less the shift: unshifted (a period's first batch), the one-pass mean of
+        # values near 1e4 is good to a few ulp of 1e4 only on the CPU's sequential chain.
+        atol = 5e-3 if not shift.any() else 1e-4
+        np.testing.assert_allclose(one[4], two[4], rtol=1e-6, atol=atol)
+        # Squared deviations: the CPU runs the one-pass reduction as one sequential
+        # Welford chain per row (why the CPU takes two passes), ~1e-4 off here.
+        np.testing.assert_allclose(one[5], two[5], rtol=1e-3)
         assert float(one[5][1]) == 0.0 == float(two[5][1])
