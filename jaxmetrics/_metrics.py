@@ -18,6 +18,11 @@ from ._tags import TagInfo
 
 BUILTIN_COUNTERS = ("env_steps", "episodes")
 
+# Version of the MetricsState's array layout, part of the spec's identity: a checkpoint of
+# another layout is refused as another spec's instead of being misread. 2: running
+# episodes in three slots per env (`_episode.SLOTS`), EMA fields of every stream row.
+STATE_LAYOUT = 2
+
 
 def _is_numeric(dtype) -> bool:
     return jnp.issubdtype(dtype, jnp.bool_) or (
@@ -254,7 +259,7 @@ class Metrics:
         _tags.check_unique((i.tag, _tags.origin(i)) for i in infos)
         self.tags: tuple[TagInfo, ...] = tuple(infos)
         config = (self._ep_defined, lg_specs, self.counter_names, self.prefixes, counter_prefix)
-        canon = repr(_canonical((config, dt.name))).encode()
+        canon = repr(_canonical((config, dt.name, STATE_LAYOUT))).encode()
         self._spec = spec_id(hashlib.sha256(canon).hexdigest())
 
     # ------------------------------------------------------------------ static views

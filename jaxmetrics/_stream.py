@@ -64,7 +64,9 @@ class StreamState(NamedTuple):
     ema_n: jax.Array  # [R] int32: values the EMA has seen (saturates at 2^31 - 1)
     ema_rings: tuple[Ring, ...]  # one per EmaGroup: the newest values, for exact merges
     steps: jax.Array  # [] uint32: arrival steps so far (wraps; only differences are used)
-    windows: tuple[Ring, ...]  # one per distinct window size
+    # One per distinct window size; its `pos` and `filled` have every stream row (`[R]`,
+    # 0 outside the group) so that they are updated with the other [R] fields.
+    windows: tuple[Ring, ...]
     hists: tuple[Count, ...]  # one per distinct bin count: [R_h, bins + 2] incl. under/overflow
 
 
@@ -193,7 +195,12 @@ def init(plan: StreamPlan, ema_history: bool = False) -> StreamState:
             _ring(len(g.rows), g.history if ema_history else 0, dt) for g in plan.ema_groups
         ),
         steps=jnp.zeros((), jnp.uint32),
-        windows=tuple(_ring(len(g.rows), g.size, dt) for g in plan.windows),
+        windows=tuple(
+            _ring(len(g.rows), g.size, dt)._replace(
+                pos=jnp.zeros((r,), jnp.int32), filled=jnp.zeros((r,), jnp.int32)
+            )
+            for g in plan.windows
+        ),
         hists=tuple(_count.zeros((len(g.rows), g.bins + 2)) for g in plan.hists),
     )
 
@@ -277,17 +284,23 @@ def add(
             )
             for g, ring in zip(plan.ema_groups, s.ema_rings)
         )
-    windows = tuple(
-        _ring_add(
-            w,
+    windows = []
+    for g, w in zip(plan.windows, s.windows):
+        ring = _ring_add(
+            _window(g, w),
             s.steps,
             _take(g.rows, values),
             _take(g.rows, mask),
             _take(tuple(at[r] for r in g.rows), rank),
             _take(g.rows, k),
         )
-        for g, w in zip(plan.windows, s.windows)
-    )
+        # `pos` and `filled` of every row, elementwise in `k` (rows of other groups keep
+        # theirs), not the group's [R_w] ones: that keeps them in the [R] update kernel.
+        mine = np.isin(np.arange(len(plan.rows)), g.rows)
+        stored = jnp.minimum(k, g.size)
+        pos = jnp.where(mine, (w.pos + stored) % g.size, w.pos)
+        filled = jnp.where(mine, jnp.minimum(w.filled + stored, g.size), w.filled)
+        windows.append(Ring(ring.buf, ring.stamp, pos, filled))
     hists = tuple(
         _hist_add(g, h, _take(g.rows, values), _take(g.rows, mask), dt)
         for g, h in zip(plan.hists, s.hists)
@@ -310,9 +323,25 @@ def add(
         ema_n=ema_n,
         ema_rings=ema_rings,
         steps=s.steps + jnp.uint32(1),
-        windows=windows,
+        windows=tuple(windows),
         hists=hists,
     )
+
+
+def _window(g: WindowGroup, w: Ring) -> Ring:
+    """The ring of window group `g` with its own rows' `pos` and `filled` ([R_w])."""
+    return w._replace(pos=_take(g.rows, w.pos), filled=_take(g.rows, w.filled))
+
+
+def _widened(g: WindowGroup, ring: Ring, rows: int) -> Ring:
+    """`_window`'s inverse: `pos` and `filled` spread to every row (0 outside `g`)."""
+    at = {r: j for j, r in enumerate(g.rows)}
+
+    def spread(x: jax.Array) -> jax.Array:
+        zero = jnp.zeros_like(x[0])
+        return jnp.stack([x[at[i]] if i in at else zero for i in range(rows)])
+
+    return ring._replace(pos=spread(ring.pos), filled=spread(ring.filled))
 
 
 def _batch(values, mask, nonfinite, shift, wt):
@@ -600,8 +629,12 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
     total, total_c = kahan_add(total, total_c, -b.sum_c)
     ema, ema_off, ema_w, ema_n, ema_rings = _merge_ema(plan, a, b)
     windows = tuple(
-        _newest(*_union(wa, a.steps, wb, b.steps), wa.buf.shape[1], a.steps)
-        for wa, wb in zip(a.windows, b.windows)
+        _widened(
+            g,
+            _newest(*_union(_window(g, wa), a.steps, _window(g, wb), b.steps), g.size, a.steps),
+            len(plan.rows),
+        )
+        for g, wa, wb in zip(plan.windows, a.windows, b.windows)
     )
     return StreamState(
         count=_count.merge(a.count, b.count),
@@ -701,6 +734,7 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
     for i in plan.ema_rows:
         out[i]["ema"] = jnp.where(s.ema_w[i] > 0, s.ema_off[i] + s.ema[i], jnp.nan)
     for g, w in zip(plan.windows, s.windows):
+        w = _window(g, w)
         vals, _, valid = _ordered(w, s.steps)
         filled = w.filled
         cnt = jnp.maximum(filled, 1).astype(dt)
