@@ -20,7 +20,8 @@ BUILTIN_COUNTERS = ("env_steps", "episodes")
 
 # Version of the MetricsState's array layout, part of the spec's identity: a checkpoint of
 # another layout is refused as another spec's instead of being misread. 2: running
-# episodes in three slots per env (`_episode.SLOTS`), EMA fields of every stream row.
+# episodes in three slots per env (`_episode.SLOTS`); EMA fields and window positions of
+# every stream row.
 STATE_LAYOUT = 2
 
 
