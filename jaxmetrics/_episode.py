@@ -1,15 +1,20 @@
-"""Per-env episode accumulators, stacked over metrics and grouped by reduction.
+"""Per-env episode accumulators, stacked over metrics: three `[rows, num_envs]` arrays.
 
-Rows are ordered by reduction (`ORDER`), so each reduction works on one contiguous
-block `[rows, num_envs]`. The step on which an episode ends is folded in before the
+Every reduction keeps its running episode in the same three arrays (`EpisodeState`):
+a step counter and two float slots whose meaning depends on the row's reduction
+(`SLOTS`). One elementwise pass updates every row, selecting per row what its
+reduction computes, so the whole fold of a step is one fused kernel whatever the mix
+of reductions, and XLA can update the accumulators in place. Rows are ordered by
+reduction (`ORDER`). The step on which an episode ends is folded in before the
 episode value is read; then that env's accumulators reset.
 
-A discounted row keeps its episode's step index `t` and a compensated sum of
-`gamma^t x_t`. `gamma^t` is recomputed from `t` on every step as `exp(t ln gamma)`, with
-`ln gamma` taken in float64 on the host: no running product to drift, and a float32
-`ln gamma` is far more precise than a float32 `gamma` near 1 (a running product of
-float32 gammas drifts to 7e-5 relative after 10^4 steps of 0.9999; this stays within
-1e-6 of float64, `tests/test_discounted.py`).
+A discounted row keeps a compensated sum of `gamma^t x_t`, where `t` is the episode's
+step index (`EpisodeState.length`, one per env: every step counts, folded or not).
+`gamma^t` is recomputed from `t` on every step as `exp(t ln gamma)`, with `ln gamma`
+taken in float64 on the host: no running product to drift, and a float32 `ln gamma` is
+far more precise than a float32 `gamma` near 1 (a running product of float32 gammas
+drifts to 7e-5 relative after 10^4 steps of 0.9999; this stays within 1e-6 of float64,
+`tests/test_discounted.py`).
 """
 
 import dataclasses
@@ -19,32 +24,38 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._numerics import kahan_add
 from ._reductions import Discounted
 
 ORDER = ("mean", "std", "sum", "max", "min", "last", "discounted")
 
+# Per reduction: what the slots `a` and `b` hold, and their values at episode start.
+SLOTS = {
+    "mean": ("Welford mean", 0.0, "unused", 0.0),
+    "std": ("Welford mean", 0.0, "Welford sum of squared deviations", 0.0),
+    "sum": ("sum", 0.0, "Kahan compensation of the sum", 0.0),
+    "max": ("max", -np.inf, "unused", 0.0),
+    "min": ("min", np.inf, "unused", 0.0),
+    "last": ("last value", np.nan, "unused", 0.0),
+    "discounted": ("sum of gamma^t x_t", 0.0, "Kahan compensation of the sum", 0.0),
+}
+
 
 class EpisodeState(NamedTuple):
-    """Running episodes of every env. Row blocks follow `ORDER`."""
+    """Running episodes of every env; what `a` and `b` hold per row is `SLOTS`."""
 
     steps: jax.Array  # [M, E] int32: steps folded into the running episode (finite ones)
-    mean: jax.Array  # [M_mean + M_std, E] float: Welford mean
-    m2: jax.Array  # [M_std, E] float: Welford sum of squared deviations
-    sum: jax.Array  # [M_sum, E] float, Kahan-compensated by sum_c
-    sum_c: jax.Array  # [M_sum, E] float
-    max: jax.Array  # [M_max, E] float, -inf at episode start
-    min: jax.Array  # [M_min, E] float, +inf at episode start
-    last: jax.Array  # [M_last, E] float, NaN at episode start
-    disc: jax.Array  # [M_disc, E] float: sum of gamma^t x_t, Kahan-compensated by disc_c
-    disc_c: jax.Array  # [M_disc, E] float
-    disc_t: jax.Array  # [M_disc, E] int32: steps of the episode so far, folded or not
+    a: jax.Array  # [M, E] float: the reduction's running value (see SLOTS)
+    b: jax.Array  # [M, E] float: its second slot (see SLOTS), 0 where unused
+    length: jax.Array  # [D, E] int32: the episode's steps so far, folded or not; D = 1
+    # where the spec has discounted rows (their `t`), else 0
 
 
 @dataclasses.dataclass(frozen=True)
 class EpisodePlan:
-    """How many rows each reduction has (rows are sorted by `ORDER`)."""
+    """The reduction of each row (rows sorted by `ORDER`)."""
 
     sizes: tuple[int, ...]  # per reduction in ORDER
     dtype: jnp.dtype
@@ -60,45 +71,50 @@ class EpisodePlan:
     def rows(self) -> int:
         return sum(self.sizes)
 
-    def block(self, name: str) -> slice:
-        i = ORDER.index(name)
-        start = sum(self.sizes[:i])
-        return slice(start, start + self.sizes[i])
+    @property
+    def kinds(self) -> tuple[str, ...]:
+        return tuple(k for k, n in zip(ORDER, self.sizes) for _ in range(n))
+
+    def column(self, fn) -> np.ndarray:
+        """`[rows, 1]` numpy column of `fn(reduction)` per row (a constant in-graph)."""
+        return np.array([fn(k) for k in self.kinds], dtype=np.float64).reshape(-1, 1)
+
+    def is_(self, *names: str) -> np.ndarray:
+        """`[rows, 1]` bool column: whether each row's reduction is one of `names`."""
+        return np.array([k in names for k in self.kinds], dtype=bool).reshape(-1, 1)
 
 
-# Value of each EpisodeState field at the start of an episode.
-_START = EpisodeState(
-    steps=0,
-    mean=0.0,
-    m2=0.0,
-    sum=0.0,
-    sum_c=0.0,
-    max=-jnp.inf,
-    min=jnp.inf,
-    last=jnp.nan,
-    disc=0.0,
-    disc_c=0.0,
-    disc_t=0,
-)
+def _start(plan: EpisodePlan) -> tuple[np.ndarray, np.ndarray]:
+    return plan.column(lambda k: SLOTS[k][1]), plan.column(lambda k: SLOTS[k][3])
 
 
 def init(plan: EpisodePlan, num_envs: int) -> EpisodeState:
-    n = dict(zip(ORDER, plan.sizes))
-    rows = EpisodeState(
-        steps=plan.rows,
-        mean=n["mean"] + n["std"],
-        m2=n["std"],
-        sum=n["sum"],
-        sum_c=n["sum"],
-        max=n["max"],
-        min=n["min"],
-        last=n["last"],
-        disc=n["discounted"],
-        disc_c=n["discounted"],
-        disc_t=n["discounted"],
+    a0, b0 = _start(plan)
+    shape = (plan.rows, num_envs)
+    return EpisodeState(
+        jnp.zeros(shape, jnp.int32),
+        jnp.broadcast_to(jnp.asarray(a0, plan.dtype), shape),
+        jnp.broadcast_to(jnp.asarray(b0, plan.dtype), shape),
+        jnp.zeros((1 if plan.log_gammas else 0, num_envs), jnp.int32),
     )
-    dtypes = EpisodeState(jnp.int32, *(plan.dtype,) * 9, jnp.int32)
-    return EpisodeState(*(jnp.full((r, num_envs), v, dt) for r, v, dt in zip(rows, _START, dtypes)))
+
+
+def _values(plan: EpisodePlan, steps, a, b) -> jax.Array:
+    """Each row's episode value from its slots (meaningful where steps > 0)."""
+    n = jnp.maximum(steps, 1).astype(plan.dtype)
+    std = jnp.sqrt(b / n) if plan.sizes[1] else a
+    compensated = plan.is_("sum", "discounted")
+    return jnp.where(plan.is_("std"), std, jnp.where(compensated, a - b, a))
+
+
+def _discounted(plan: EpisodePlan, ep: EpisodeState, x, fold) -> tuple[jax.Array, jax.Array]:
+    """The discounted rows' new sum and compensation (computed on every row)."""
+    log_g = np.zeros((plan.rows, 1))
+    log_g[plan.is_("discounted")[:, 0], 0] = plan.log_gammas
+    factor = jnp.exp(ep.length.astype(plan.dtype) * jnp.asarray(log_g, plan.dtype))
+    # gamma^t * inf is inf even where gamma^t underflowed to 0 (only "propagate" folds it).
+    term = jnp.where(jnp.isfinite(x), factor * x, x)
+    return kahan_add(ep.a, ep.b, jnp.where(fold, term, 0))
 
 
 def step(
@@ -110,67 +126,47 @@ def step(
     `done`), and whether each env's episode has any folded step (`[M, E]` bool).
     """
     steps = ep.steps + fold.astype(jnp.int32)
-    b = plan.block
-    welford = slice(b("mean").start, b("std").stop)
-    xw, fw = x[welford], fold[welford]
-    nw = jnp.maximum(steps[welford], 1).astype(plan.dtype)
+    a, b = ep.a, ep.b
+    # Every reduction's update on every row, each row then keeps its own (a select per
+    # reduction, not a kernel per block of rows).
+    nw = jnp.maximum(steps, 1).astype(plan.dtype)
     # An infinite mean stays infinite under finite steps or the same infinity (as numpy's
     # mean does) instead of turning into NaN through inf - inf; only "propagate" lets
     # infinities in at all.
-    stays = jnp.isinf(ep.mean) & (jnp.isfinite(xw) | (xw == ep.mean))
-    delta = jnp.where(fw & ~stays, xw - ep.mean, 0)
-    mean = ep.mean + delta / nw
-    std_in_w = slice(b("std").start - welford.start, b("std").stop - welford.start)
-    m2 = ep.m2 + jnp.where(fw[std_in_w], delta[std_in_w] * (xw - mean)[std_in_w], 0)
-
-    xs, fs = x[b("sum")], fold[b("sum")]
-    t, sum_c = kahan_add(ep.sum, ep.sum_c, jnp.where(fs, xs, 0))
-
-    vmax = jnp.where(fold[b("max")], jnp.maximum(ep.max, x[b("max")]), ep.max)
-    vmin = jnp.where(fold[b("min")], jnp.minimum(ep.min, x[b("min")]), ep.min)
-    last = jnp.where(fold[b("last")], x[b("last")], ep.last)
-
-    xd, fd = x[b("discounted")], fold[b("discounted")]
-    log_g = jnp.asarray(plan.log_gammas, plan.dtype).reshape(-1, 1)
-    factor = jnp.exp(ep.disc_t.astype(plan.dtype) * log_g)
-    # gamma^t * inf is inf even where gamma^t underflowed to 0 (only "propagate" folds it).
-    term = jnp.where(jnp.isfinite(xd), factor * xd, xd)
-    disc, disc_c = kahan_add(ep.disc, ep.disc_c, jnp.where(fd, term, 0))
-
-    nstd = jnp.maximum(steps[b("std")], 1).astype(plan.dtype)
-    values = jnp.concatenate(
-        [
-            mean[: plan.sizes[0]],
-            jnp.sqrt(m2 / nstd),
-            t - sum_c,
-            vmax,
-            vmin,
-            last,
-            disc - disc_c,
-        ],
-        axis=0,
+    stays = jnp.isinf(a) & (jnp.isfinite(x) | (x == a))
+    delta = jnp.where(fold & ~stays, x - a, 0)
+    mean = a + delta / nw
+    m2 = b + jnp.where(fold, delta * (x - mean), 0)
+    total, comp = kahan_add(a, b, jnp.where(fold, x, 0))
+    vmax = jnp.where(fold, jnp.maximum(a, x), a)
+    vmin = jnp.where(fold, jnp.minimum(a, x), a)
+    last = jnp.where(fold, x, a)
+    is_ = plan.is_
+    new_a = jnp.where(
+        is_("mean", "std"),
+        mean,
+        jnp.where(
+            is_("sum"), total, jnp.where(is_("max"), vmax, jnp.where(is_("min"), vmin, last))
+        ),
     )
-    new = EpisodeState(steps, mean, m2, t, sum_c, vmax, vmin, last, disc, disc_c, ep.disc_t + 1)
+    new_b = jnp.where(is_("std"), m2, jnp.where(is_("sum"), comp, b))
+    if plan.log_gammas:
+        dsum, dcomp = _discounted(plan, ep, x, fold)
+        new_a = jnp.where(is_("discounted"), dsum, new_a)
+        new_b = jnp.where(is_("discounted"), dcomp, new_b)
+    values = _values(plan, steps, new_a, new_b)
     d = done[None, :]
-    # Start values as scalars (not fresh arrays), so the reset keeps each field's sharding.
-    reset = EpisodeState(*(jnp.where(d, v0, v) for v0, v in zip(_START, new)))
+    a0, b0 = _start(plan)
+    # Start values as constant columns, so the reset keeps each field's sharding.
+    reset = EpisodeState(
+        jnp.where(d, 0, steps),
+        jnp.where(d, jnp.asarray(a0, plan.dtype), new_a),
+        jnp.where(d, jnp.asarray(b0, plan.dtype), new_b),
+        jnp.where(d, 0, ep.length + 1),
+    )
     return reset, values, steps > 0
 
 
 def running(plan: EpisodePlan, ep: EpisodeState) -> jax.Array:
     """Current value of every running episode `[M, E]` (NaN where it has no step yet)."""
-    b = plan.block
-    nstd = jnp.maximum(ep.steps[b("std")], 1).astype(plan.dtype)
-    values = jnp.concatenate(
-        [
-            ep.mean[: plan.sizes[0]],
-            jnp.sqrt(ep.m2 / nstd),
-            ep.sum - ep.sum_c,
-            ep.max,
-            ep.min,
-            ep.last,
-            ep.disc - ep.disc_c,
-        ],
-        axis=0,
-    )
-    return jnp.where(ep.steps > 0, values, jnp.nan)
+    return jnp.where(ep.steps > 0, _values(plan, ep.steps, ep.a, ep.b), jnp.nan)

@@ -21,6 +21,12 @@ GROUP_COUNTER = "ungrouped"
 # Counted per env shard in MetricsState.ended (column 0: episodes; then per grouping).
 _SHARD_COUNTERS = ("episodes", GROUP_COUNTER)
 
+# Version of the MetricsState's array layout, part of the spec's identity: a checkpoint of
+# another layout is refused as another spec's instead of being misread. 2: running
+# episodes in three slots per env (`_episode.SLOTS`); EMA fields and window positions of
+# every stream row.
+STATE_LAYOUT = 2
+
 
 def _is_numeric(dtype) -> bool:
     return jnp.issubdtype(dtype, jnp.bool_) or (
@@ -310,7 +316,7 @@ class Metrics:
         _tags.check_unique((i.tag, _tags.origin(i)) for i in infos)
         self.tags: tuple[TagInfo, ...] = tuple(infos)
         config = (self._ep_defined, lg_specs, self.counter_names, self.prefixes, counter_prefix)
-        canon = repr(_canonical((config, dt.name))).encode()
+        canon = repr(_canonical((config, dt.name, STATE_LAYOUT))).encode()
         self._spec = spec_id(hashlib.sha256(canon).hexdigest())
 
     # ------------------------------------------------------------------ static views
@@ -598,6 +604,11 @@ class Metrics:
             for i, where in self._group_ids(step_input, num_envs)
         ]
         values, ok, bad = self._by_group(values, ok, bad, group_ids)
+        # Materialized once (after the group split): without the barrier XLA recomputes
+        # the episode values from the old accumulators inside each reduction, which makes
+        # it copy them every step (H100, isolated update: 13.3 instead of 16.4 us/step for
+        # the simple spec).
+        values, ok, bad = jax.lax.optimization_barrier((values, ok, bad))
 
         def by_shard(a: jax.Array) -> jax.Array:
             # [M, E] -> [S, M, E/S]: shard s gets the s-th block of envs. With the env axis
@@ -609,9 +620,9 @@ class Metrics:
         assert plan is not None
 
         def fold(st, v, m, n):
-            return _stream.add_nonfinite(_stream.add(plan, st, v, m), n)
+            return _stream.add(plan, st, v, m, n)
 
-        args = (state.finished, by_shard(values), by_shard(ok), jnp.sum(by_shard(bad), axis=2))
+        args = (state.finished, by_shard(values), by_shard(ok), by_shard(bad))
         if shards == 1:
             # One shard: the plain fold (a vmap of size 1 still batches its scatters).
             first = jax.tree.map(lambda a: a[0], args)
@@ -735,8 +746,8 @@ class Metrics:
             m = m.at[i, : a.shape[0]].set(True)
         finite = jnp.isfinite(v)
         ok = m & (finite | jnp.asarray(self._lg_propagate)[:, None])
-        logged = _stream.add(self._lg_plan, state.logged, v, ok)
-        logged = _stream.add_nonfinite(logged, jnp.sum(m & ~finite, axis=1, dtype=jnp.int32))
+        bad = (m & ~finite).astype(jnp.int32)
+        logged = _stream.add(self._lg_plan, state.logged, v, ok, bad)
         return state._replace(logged=logged)
 
     def increment(self, state: MetricsState, name: str, by: Any = 1) -> MetricsState:

@@ -57,13 +57,17 @@ class StreamState(NamedTuple):
     min: jax.Array  # [R] float, +inf when empty
     max: jax.Array  # [R] float, -inf when empty
     nonfinite: Count  # [R] uint32 pair: non-finite values left out in this period
-    ema: jax.Array  # [R_ema] float: the EMA minus `ema_off`
-    ema_off: jax.Array  # [R_ema] float: offset fixed when the EMA is seeded
-    ema_w: jax.Array  # [R_ema] float: 0 unseeded, else number of merged seeded workers
-    ema_n: jax.Array  # [R_ema] int32: values the EMA has seen (saturates at 2^31 - 1)
+    # EMA fields have every row (0 where a row has no EMA), so that the whole update of
+    # the per-row statistics after a batch is one elementwise pass over [R] arrays.
+    ema: jax.Array  # [R] float: the EMA minus `ema_off`
+    ema_off: jax.Array  # [R] float: offset fixed when the EMA is seeded
+    ema_w: jax.Array  # [R] float: 0 unseeded, else number of merged seeded workers
+    ema_n: jax.Array  # [R] int32: values the EMA has seen (saturates at 2^31 - 1)
     ema_rings: tuple[Ring, ...]  # one per EmaGroup: the newest values, for exact merges
     steps: jax.Array  # [] uint32: arrival steps so far (wraps; only differences are used)
-    windows: tuple[Ring, ...]  # one per distinct window size
+    # One per distinct window size; its `pos` and `filled` have every stream row (`[R]`,
+    # 0 outside the group) so that they are updated with the other [R] fields.
+    windows: tuple[Ring, ...]
     hists: tuple[Count, ...]  # one per distinct bin count: [R_h, bins + 2] incl. under/overflow
     sketches: tuple[Count, ...]  # one per distinct quantile accuracy: [R_q, slots] (`_sketch`)
 
@@ -189,7 +193,7 @@ def init(plan: StreamPlan, ema_history: bool = False) -> StreamState:
     EMA is the average of the workers' EMAs."""
     r, dt = len(plan.rows), plan.dtype
     zeros = jnp.zeros((r,), dt)
-    e = len(plan.ema_rows)
+    e = r
     return StreamState(
         count=_count.zeros((r,)),
         mean=zeros,
@@ -208,7 +212,12 @@ def init(plan: StreamPlan, ema_history: bool = False) -> StreamState:
             _ring(len(g.rows), g.history if ema_history else 0, dt) for g in plan.ema_groups
         ),
         steps=jnp.zeros((), jnp.uint32),
-        windows=tuple(_ring(len(g.rows), g.size, dt) for g in plan.windows),
+        windows=tuple(
+            _ring(len(g.rows), g.size, dt)._replace(
+                pos=jnp.zeros((r,), jnp.int32), filled=jnp.zeros((r,), jnp.int32)
+            )
+            for g in plan.windows
+        ),
         hists=tuple(_count.zeros((len(g.rows), g.bins + 2)) for g in plan.hists),
         sketches=tuple(_count.zeros((len(g.rows), g.slots)) for g in plan.sketches),
     )
@@ -226,36 +235,43 @@ def _take(rows: tuple[int, ...], x: jax.Array) -> jax.Array:
     return jnp.stack([x[i] for i in rows])
 
 
-def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) -> StreamState:
-    """Feeds `values[R, B]` where `mask[R, B]`, column order being arrival order."""
+def add(
+    plan: StreamPlan,
+    s: StreamState,
+    values: jax.Array,
+    mask: jax.Array,
+    nonfinite: jax.Array | None = None,
+) -> StreamState:
+    """Feeds `values[R, B]` where `mask[R, B]`, column order being arrival order, and
+    counts `nonfinite[R, B]` (int32, per entry) into the period's non-finite counts."""
     dt = plan.dtype
     wt = _weight_dtype(dt)
-    has = ~_count.is_zero(s.count)
-    k = jnp.sum(mask, axis=1, dtype=jnp.int32)
-    bsum = jnp.sum(jnp.where(mask, values, 0), axis=1)
-    bmin = jnp.min(jnp.where(mask, values, jnp.inf), axis=1)
-    bmax = jnp.max(jnp.where(mask, values, -jnp.inf), axis=1)
-    # Shifted moments: deviations from the running mean (or, for the first batch, the
-    # batch's plain mean) keep sums of squares small, so float32 stays accurate for data
-    # far from zero (a second pass over the batch, but exact for constant data).
-    shift = jnp.where(has, s.mean, bsum / jnp.maximum(k, 1).astype(dt))
-    d = jnp.where(mask, values - shift[:, None], jnp.zeros_like(values))
-    s1 = jnp.sum(d, axis=1)
-    s2 = jnp.sum(d * d, axis=1)
+    # Deviations from the running mean keep the moments small, so float32 stays accurate
+    # for data far from zero. An empty period's mean is 0 (init, reset_period and merge
+    # keep it so), so its first batch is folded as it is (Chan's pairwise update is
+    # exact for constant data either way). No `count > 0` test here: with it XLA left
+    # the shifted values out of the reduction's kernel (one more kernel per step).
+    shift = s.mean
+    if nonfinite is None:
+        nonfinite = jnp.zeros(values.shape, jnp.int32)
+    k, bsum, bmin, bmax, mb, m2b, bad = _batch(values, mask, nonfinite, shift, wt)
 
     kf = k.astype(wt)
     na = _count.as_float(s.count, wt)
-    mb = s1 / jnp.maximum(kf, 1).astype(dt)  # the batch's mean minus the shift
-    m2b = jnp.maximum(s2 - s1 * mb, 0)
     n = na + kf
     frac = jnp.where(n > 0, kf / jnp.maximum(n, 1), 0)
-    # With values in the period, shift == s.mean and mb is Chan's delta; without, the new
-    # mean is shift + mb (frac == 1) and the old mean carries no weight (na == 0).
+    # With values in the period, shift == s.mean and mb (the batch's mean minus it) is
+    # Chan's delta; without, the new mean is mb (frac == 1) and the old mean carries no
+    # weight (na == 0).
     mean = shift + mb * frac.astype(dt)
     m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + mb * mb * (na * frac).astype(dt))
+    # Every [R] field below is a function of `k` (an empty batch leaves it as it is),
+    # which lets XLA update them all in one multi-output kernel.
+    some = k > 0
     total, total_c = kahan_add(s.sum, s.sum_c, bsum)
-    vmin = jnp.minimum(s.min, bmin)
-    vmax = jnp.maximum(s.max, bmax)
+    total, total_c = jnp.where(some, total, s.sum), jnp.where(some, total_c, s.sum_c)
+    vmin = jnp.where(some, jnp.minimum(s.min, bmin), s.min)
+    vmax = jnp.where(some, jnp.maximum(s.max, bmax), s.max)
 
     if plan.ema_rows or plan.windows or plan.hists or plan.sketches:
         values, mask = gathered(values), gathered(mask)
@@ -268,11 +284,11 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     ema_rings = s.ema_rings
     if plan.ema_rows:
         sub = tuple(at[r] for r in plan.ema_rows)
-        ek = _take(plan.ema_rows, k)
-        ema, ema_off, ema_w = _ema_add(
-            plan, s, values, mask, _take(sub, rank), ek, _take(plan.ema_rows, shift)
-        )
-        ema_n = ema_n + jnp.minimum(ek, _INT32_MAX - ema_n)
+        er = plan.ema_rows
+        ek = _take(er, k)
+        ema, ema_off, ema_w = _ema_add(plan, s, values, mask, _take(sub, rank), k, mean)
+        is_ema = np.isin(np.arange(len(plan.rows)), er)
+        ema_n = ema_n + jnp.where(is_ema, jnp.minimum(k, _INT32_MAX - ema_n), 0)
         ema_rings = tuple(
             ring
             if ring.buf.shape[1] == 0
@@ -286,17 +302,23 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
             )
             for g, ring in zip(plan.ema_groups, s.ema_rings)
         )
-    windows = tuple(
-        _ring_add(
-            w,
+    windows = []
+    for g, w in zip(plan.windows, s.windows):
+        ring = _ring_add(
+            _window(g, w),
             s.steps,
             _take(g.rows, values),
             _take(g.rows, mask),
             _take(tuple(at[r] for r in g.rows), rank),
             _take(g.rows, k),
         )
-        for g, w in zip(plan.windows, s.windows)
-    )
+        # `pos` and `filled` of every row, elementwise in `k` (rows of other groups keep
+        # theirs), not the group's [R_w] ones: that keeps them in the [R] update kernel.
+        mine = np.isin(np.arange(len(plan.rows)), g.rows)
+        stored = jnp.minimum(k, g.size)
+        pos = jnp.where(mine, (w.pos + stored) % g.size, w.pos)
+        filled = jnp.where(mine, jnp.minimum(w.filled + stored, g.size), w.filled)
+        windows.append(Ring(ring.buf, ring.stamp, pos, filled))
     hists = tuple(
         _hist_add(g, h, _take(g.rows, values), _take(g.rows, mask), dt)
         for g, h in zip(plan.hists, s.hists)
@@ -307,6 +329,9 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
     )
     return s._replace(
         count=_count.add(s.count, k),
+        # `k < 0` never holds: reading `k` here lets XLA update this count in the same
+        # kernel as the other [R] fields (sibling fusions must share an operand).
+        nonfinite=_count.add(s.nonfinite, jnp.where(k < 0, 0, bad)),
         mean=mean,
         m2=m2,
         m2_c=m2_c,
@@ -320,34 +345,143 @@ def add(plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array) ->
         ema_n=ema_n,
         ema_rings=ema_rings,
         steps=s.steps + jnp.uint32(1),
-        windows=windows,
+        windows=tuple(windows),
         hists=hists,
         sketches=sketches,
     )
+
+
+def _window(g: WindowGroup, w: Ring) -> Ring:
+    """The ring of window group `g` with its own rows' `pos` and `filled` ([R_w])."""
+    return w._replace(pos=_take(g.rows, w.pos), filled=_take(g.rows, w.filled))
+
+
+def _widened(g: WindowGroup, ring: Ring, rows: int) -> Ring:
+    """`_window`'s inverse: `pos` and `filled` spread to every row (0 outside `g`)."""
+    at = {r: j for j, r in enumerate(g.rows)}
+
+    def spread(x: jax.Array) -> jax.Array:
+        zero = jnp.zeros_like(x[0])
+        return jnp.stack([x[at[i]] if i in at else zero for i in range(rows)])
+
+    return ring._replace(pos=spread(ring.pos), filled=spread(ring.filled))
+
+
+def _batch(values, mask, nonfinite, shift, wt):
+    """Per row of a batch `values[R, B]` where `mask`: the count, sum, min, max, and the
+    mean and sum of squared deviations of `values - shift`; and the sum of `nonfinite`.
+
+    On accelerators one reduction gives them all: its combiner merges the moments
+    pairwise (Chan's rule), so no first pass for a pivot is needed. The CPU reduces a
+    row sequentially, and a sequential Welford update over 10^6 float32 values drifts;
+    there the moments take two passes around the batch's mean (or `shift`). Both agree
+    to float32 rounding (tests/test_core_numerics.py checks both on one input).
+    """
+    return jax.lax.platform_dependent(
+        values,
+        mask,
+        nonfinite,
+        shift,
+        cpu=lambda v, m, nf, sh: batch_two_pass(v, m, nf, sh, wt),
+        default=lambda v, m, nf, sh: batch_one_pass(v, m, nf, sh, wt),
+    )
+
+
+def batch_two_pass(values, mask, nonfinite, shift, wt):
+    """`_batch` in two passes: count, sum, min, max, then moments around a pivot (`shift`
+    where it is non-zero, else the batch's mean)."""
+    dt = values.dtype
+    k = jnp.sum(mask, axis=1, dtype=jnp.int32)
+    bsum = jnp.sum(jnp.where(mask, values, 0), axis=1)
+    bmin = jnp.min(jnp.where(mask, values, jnp.inf), axis=1)
+    bmax = jnp.max(jnp.where(mask, values, -jnp.inf), axis=1)
+    kd = jnp.maximum(k, 1).astype(dt)
+    pivot = jnp.where(shift != 0, shift, bsum / kd)
+    d = jnp.where(mask, values - pivot[:, None], jnp.zeros_like(values))
+    s1 = jnp.sum(d, axis=1)
+    s2 = jnp.sum(d * d, axis=1)
+    mb = s1 / kd
+    m2b = jnp.maximum(s2 - s1 * mb, 0)
+    bad = jnp.sum(nonfinite, axis=1, dtype=jnp.int32)
+    return k, bsum, bmin, bmax, mb + (pivot - shift), m2b, bad
+
+
+def batch_one_pass(values, mask, nonfinite, shift, wt):
+    """`_batch` as one variadic reduction (Chan's pairwise moments in its combiner)."""
+    dt = values.dtype
+    zero = jnp.zeros_like(values)
+    operands = (
+        mask.astype(jnp.int32),
+        jnp.where(mask, values, zero),
+        jnp.where(mask, values, jnp.full_like(values, jnp.inf)),
+        jnp.where(mask, values, jnp.full_like(values, -jnp.inf)),
+        jnp.where(mask, values - shift[:, None], zero),
+        zero,
+        nonfinite,
+    )
+    inits = (
+        np.int32(0),
+        np.array(0, dt),
+        np.array(np.inf, dt),
+        np.array(-np.inf, dt),
+        np.array(0, dt),
+        np.array(0, dt),
+        np.int32(0),
+    )
+
+    def combine(x, y):
+        ka, sa, lo_a, hi_a, ma, qa, na = x
+        kb, sb, lo_b, hi_b, mb, qb, nb = y
+        fa, fb = ka.astype(wt), kb.astype(wt)
+        frac = (fb / jnp.maximum(fa + fb, 1)).astype(dt)
+        delta = mb - ma
+        both = (ka > 0) & (kb > 0)
+        # An empty side carries no weight (and no inf - inf from a non-finite mean).
+        m = jnp.where(both, ma + delta * frac, jnp.where(ka > 0, ma, mb))
+        q = jnp.where(both, qa + qb + delta * delta * (fa.astype(dt) * frac), qa + qb)
+        lo, hi = jnp.minimum(lo_a, lo_b), jnp.maximum(hi_a, hi_b)
+        return ka + kb, sa + sb, lo, hi, m, q, na + nb
+
+    # Deviations from `shift` (the running mean) go in, not the values: taking the shift
+    # off the batch's mean afterwards saves ~1 us/step on an H100 but rounds Chan's
+    # delta to the ulp of the mean, a variance bias of ~(ulp/sigma)^2 for data far from
+    # zero (1e-4 relative at mean 1e6, std 1).
+    return jax.lax.reduce(operands, inits, combine, (1,))
 
 
 _INT32_MAX = np.int32(np.iinfo(np.int32).max)
 
 
 def _ema_add(plan: StreamPlan, s: StreamState, values, mask, r, k, shift):
+    """New (ema, ema_off, ema_w), every row ([R]; rows without an EMA keep theirs)."""
     # Sequential EMA over the k arrivals in closed form: value with rank r gets weight
     # c(1-c)^(k-1-r); the old EMA gets (1-c)^k. Unseeded, the first arrival seeds it
     # (weight (1-c)^(k-1)) and the old EMA gets none. The EMA is kept relative to an
-    # offset fixed at seeding (the moments' shift: the period's mean or the batch's): a
-    # float32 EMA
-    # of values far from zero otherwise loses the low bits of every update and drifts.
-    v = _take(plan.ema_rows, values)
-    m = _take(plan.ema_rows, mask)
+    # offset fixed at seeding (the period's mean as of this batch): a float32 EMA of
+    # values far from zero otherwise loses the low bits of every update and drifts.
+    # Only the weighted sum over the batch is done on the EMA rows; every other step is
+    # elementwise over all R rows, so that it joins the one update of the [R] fields.
+    er = plan.ema_rows
     dt = plan.dtype
-    c = jnp.asarray(plan.ema_coeffs, dt)[:, None]
+    rows = len(plan.rows)
+    coeff = dict(zip(er, plan.ema_coeffs))
+    is_ema = np.array([i in coeff for i in range(rows)])
+    c_all = jnp.asarray([coeff.get(i, 1.0) for i in range(rows)], dt)
     seeded = s.ema_w > 0
     off = jnp.where(seeded, s.ema_off, shift)
-    decay = jnp.power(1 - c, (k[:, None] - 1 - r).astype(dt))
-    w = jnp.where(seeded[:, None] | (r > 0), c * decay, decay)
-    new = jnp.sum(jnp.where(m, w * (v - off[:, None]), 0), axis=1)
-    keep = jnp.power(1 - c[:, 0], k.astype(dt))
+    ke = _take(er, k)
+    c = jnp.asarray(plan.ema_coeffs, dt)[:, None]
+    decay = jnp.power(1 - c, (ke[:, None] - 1 - r).astype(dt))
+    w = jnp.where(_take(er, seeded)[:, None] | (r > 0), c * decay, decay)
+    dev = jnp.where(_take(er, mask), w * (_take(er, values) - _take(er, off)[:, None]), 0)
+    # Spread over all rows before the sum (zero rows), not after: the sum then comes out
+    # [R] from the reduction itself.
+    at = {row: j for j, row in enumerate(er)}
+    zero = jnp.zeros_like(dev[0])
+    new = jnp.sum(jnp.stack([dev[at[i]] if i in at else zero for i in range(rows)]), axis=1)
+    keep = jnp.power(1 - c_all, k.astype(dt))
     ema = jnp.where(seeded, keep * s.ema, 0) + new
-    some = k > 0
+    some = is_ema & (k > 0)
     ema = jnp.where(some, ema, s.ema)
     ema_off = jnp.where(some, off, s.ema_off)
     ema_w = jnp.where(~seeded & some, jnp.ones_like(s.ema_w), s.ema_w)
@@ -399,10 +533,6 @@ def _hist_add(g: HistGroup, h: Count, values, mask, dt) -> Count:
         default=lambda x: slot_counts_compare(x, g.bins + 2),
     )
     return _count.add(h, inc)
-
-
-def add_nonfinite(s: StreamState, n: jax.Array) -> StreamState:
-    return s._replace(nonfinite=_count.add(s.nonfinite, n))
 
 
 def reset_period(plan: StreamPlan, s: StreamState) -> StreamState:
@@ -480,7 +610,7 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
     parts, rings = [], []
     for g, ra, rb in zip(plan.ema_groups, a.ema_rings, b.ema_rings):
         size = ra.buf.shape[1]
-        rows = jnp.asarray(g.rows, jnp.int32)
+        rows = jnp.asarray([plan.ema_rows[j] for j in g.rows], jnp.int32)
         vals, age, valid = _union(ra, a.steps, rb, b.steps)
         # Exact when the rings hold every value either worker has seen.
         exact = (a.ema_n[rows] <= size) & (b.ema_n[rows] <= size)
@@ -494,11 +624,11 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
         dev = vals - off[rows][:, None]
         new = jnp.sum(jnp.where(valid & (p < folded), w * dev, 0), axis=1)
         keep = jnp.where(exact, 0, jnp.power(1 - c, folded[:, 0].astype(dt)) * tail[rows])
-        parts.append((g.rows, keep + new))
+        parts.append((rows, keep + new))
         rings.append(_newest(vals, age, valid, size, a.steps))
     ema = jnp.zeros_like(a.ema)
     for rows, v in parts:
-        ema = ema.at[jnp.asarray(rows, jnp.int32)].set(v)
+        ema = ema.at[rows].set(v)
     ema = jnp.where(a.ema_n == 0, b.ema, jnp.where(b.ema_n == 0, a.ema, ema))
     return ema, off, wsum, n, tuple(rings)
 
@@ -522,8 +652,12 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
     total, total_c = kahan_add(total, total_c, -b.sum_c)
     ema, ema_off, ema_w, ema_n, ema_rings = _merge_ema(plan, a, b)
     windows = tuple(
-        _newest(*_union(wa, a.steps, wb, b.steps), wa.buf.shape[1], a.steps)
-        for wa, wb in zip(a.windows, b.windows)
+        _widened(
+            g,
+            _newest(*_union(_window(g, wa), a.steps, _window(g, wb), b.steps), g.size, a.steps),
+            len(plan.rows),
+        )
+        for g, wa, wb in zip(plan.windows, a.windows, b.windows)
     )
     return StreamState(
         count=_count.merge(a.count, b.count),
@@ -621,9 +755,10 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
         }
         for i in range(len(plan.rows))
     ]
-    for j, i in enumerate(plan.ema_rows):
-        out[i]["ema"] = jnp.where(s.ema_w[j] > 0, s.ema_off[j] + s.ema[j], jnp.nan)
+    for i in plan.ema_rows:
+        out[i]["ema"] = jnp.where(s.ema_w[i] > 0, s.ema_off[i] + s.ema[i], jnp.nan)
     for g, w in zip(plan.windows, s.windows):
+        w = _window(g, w)
         vals, _, valid = _ordered(w, s.steps)
         filled = w.filled
         cnt = jnp.maximum(filled, 1).astype(dt)

@@ -118,3 +118,31 @@ def test_ema_closed_form_without_offset_drifts_past_the_bound():
     want = _ema_reference(x, EMA_C)
     spread = float(np.std(x.astype(np.float64)))
     assert abs(float(fold(x.reshape(-1, k))) - want) > 2e-3 * spread
+
+
+def test_one_pass_and_two_pass_batch_moments_agree():
+    # Accelerators fold a batch in one reduction (Chan's pairwise moments in its
+    # combiner), the CPU in two passes around a pivot; both on one input, on the CPU.
+    from jaxmetrics import _stream
+
+    rng = np.random.default_rng(3)
+    v = (1e4 + rng.standard_normal((4, 4096))).astype(np.float32)
+    v[1] = 5.0  # constant: no spread at all
+    m = rng.random((4, 4096)) < 0.3
+    m[3] = False  # nothing arrives
+    nf = rng.integers(0, 2, (4, 4096)).astype(np.int32)
+    for shift in (np.zeros(4, np.float32), np.full(4, 1e4, np.float32)):
+        args = (jnp.asarray(v), jnp.asarray(m), jnp.asarray(nf), jnp.asarray(shift))
+        one = jax.jit(_stream.batch_one_pass, static_argnums=4)(*args, jnp.float32)
+        two = jax.jit(_stream.batch_two_pass, static_argnums=4)(*args, jnp.float32)
+        for i in (0, 2, 3, 6):  # count, min, max, non-finite count: exact
+            np.testing.assert_array_equal(one[i], two[i])
+        np.testing.assert_allclose(one[1], two[1], rtol=1e-6)  # sum
+        # Mean less the shift: unshifted (a period's first batch), the one-pass mean of
+        # values near 1e4 is good to a few ulp of 1e4 only on the CPU's sequential chain.
+        atol = 5e-3 if not shift.any() else 1e-4
+        np.testing.assert_allclose(one[4], two[4], rtol=1e-6, atol=atol)
+        # Squared deviations: the CPU runs the one-pass reduction as one sequential
+        # Welford chain per row (why the CPU takes two passes), ~1e-4 off here.
+        np.testing.assert_allclose(one[5], two[5], rtol=1e-3)
+        assert float(one[5][1]) == 0.0 == float(two[5][1])
