@@ -165,6 +165,19 @@ def _tag_table(metrics: Metrics, include_running: bool) -> tuple[TagInfo, ...]:
     return metrics.tags + tuple(running) + tuple(derived_tags(metrics.tags))
 
 
+def _scalars(where: str, **args: Any) -> tuple[jax.Array, ...]:
+    """The in-graph arguments as scalar arrays: `when` a bool, the others ints."""
+    out = []
+    for name, v in args.items():
+        v = jnp.asarray(v)
+        ok = v.dtype == jnp.bool_ if name == "when" else jnp.issubdtype(v.dtype, jnp.integer)
+        if not ok or v.shape != ():
+            kind = "a bool" if name == "when" else "an int"
+            raise TypeError(f"{where}: {name} must be {kind} scalar, got {v.dtype}{list(v.shape)}.")
+        out.append(v)
+    return tuple(out)
+
+
 # Loggers not yet closed, closed together at interpreter exit (in creation order).
 _OPEN: dict[int, "Logger"] = {}
 
@@ -625,19 +638,7 @@ class Logger(AbstractContextManager):
             if self.runs != 1:
                 raise TypeError(f"Logger(runs={self.runs}).emit needs run=<run index>.")
             run = jnp.zeros((), jnp.int32)
-        run = jnp.asarray(run)
-        step = jnp.asarray(step)
-        when = jnp.asarray(when)
-        for name, v, ok in (
-            ("step", step, jnp.issubdtype(step.dtype, jnp.integer)),
-            ("run", run, jnp.issubdtype(run.dtype, jnp.integer)),
-            ("when", when, when.dtype == jnp.bool_),
-        ):
-            if not ok or v.shape != ():
-                kind = "a bool" if name == "when" else "an int"
-                raise TypeError(
-                    f"Logger.emit: {name} must be {kind} scalar, got {v.dtype}{list(v.shape)}."
-                )
+        step, run, when = _scalars("Logger.emit", step=step, run=run, when=when)
         return self._emit(state, step, when, run)
 
     def _on_emit(
@@ -734,16 +735,7 @@ class Logger(AbstractContextManager):
           [(1, 10.5), (3, 12.5)]
         """
         self._check_open("record")
-        step, when = jnp.asarray(step), jnp.asarray(when)
-        for name, v, ok in (
-            ("step", step, jnp.issubdtype(step.dtype, jnp.integer)),
-            ("when", when, when.dtype == jnp.bool_),
-        ):
-            if not ok or v.shape != ():
-                kind = "a bool" if name == "when" else "an int"
-                raise TypeError(
-                    f"Logger.record: {name} must be {kind} scalar, got {v.dtype}{list(v.shape)}."
-                )
+        step, when = _scalars("Logger.record", step=step, when=when)
         if not isinstance(state, MetricsState):
             raise TypeError(f"Logger.record: expected a MetricsState, got {type(state).__name__}.")
         _history.check(history, self._layout_id, self._packer, (), "Logger.record")
