@@ -619,41 +619,26 @@ class Metrics:
         plan = self._ep_plan
         assert plan is not None
 
-        def fold(st, v, m, n):
-            return _stream.add(plan, st, v, m, n)
+        # Per shard: episodes ended, and those whose group index is out of range, counted
+        # in the fold's own reduction.
+        shard_counts = [done]
+        if group_ids:
+            out_of_range = [
+                done & ((i < 0) | (i >= len(g.names))) for g, i in zip(self._groupings, group_ids)
+            ]
+            shard_counts.append(jnp.sum(jnp.stack(out_of_range), axis=0, dtype=jnp.int32))
+        tally = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
 
-        args = (state.finished, by_shard(values), by_shard(ok), by_shard(bad))
+        def fold(st, v, m, n, t):
+            return _stream.add_tallied(plan, st, v, m, n, t)
+
+        args = (state.finished, by_shard(values), by_shard(ok), by_shard(bad), by_shard(tally))
         if shards == 1:
             # One shard: the plain fold (a vmap of size 1 still batches its scatters).
             first = jax.tree.map(lambda a: a[0], args)
-            finished = jax.tree.map(lambda a: a[None], fold(*first))
+            finished, per_shard = jax.tree.map(lambda a: a[None], fold(*first))
         else:
-            finished = jax.vmap(fold)(*args)
-        # Per shard: episodes ended, and those whose group index is out of range.
-        shard_counts = (
-            [done]
-            if not group_ids
-            else [
-                done,
-                jnp.sum(
-                    jnp.stack(
-                        [
-                            done & ((i < 0) | (i >= len(g.names)))
-                            for g, i in zip(self._groupings, group_ids)
-                        ]
-                    ),
-                    axis=0,
-                    dtype=jnp.int32,
-                ),
-            ]
-        )
-        per_shard = jnp.stack(
-            [
-                jnp.sum(c.reshape(shards, num_envs // shards), axis=1, dtype=jnp.int32)
-                for c in shard_counts
-            ],
-            axis=1,
-        )
+            finished, per_shard = jax.vmap(fold)(*args)
         counters = state.counters
         assert counters is not None
         inc = jnp.zeros((len(self._stored_counters),), jnp.int32).at[0].set(num_envs)

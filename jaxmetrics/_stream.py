@@ -242,8 +242,21 @@ def add(
     mask: jax.Array,
     nonfinite: jax.Array | None = None,
 ) -> StreamState:
-    """Feeds `values[R, B]` where `mask[R, B]`, column order being arrival order, and
-    counts `nonfinite[R, B]` (int32, per entry) into the period's non-finite counts."""
+    """Feeds `values[R, B]` where `mask`, column order being arrival order, and counts
+    `nonfinite[R, B]` (int32, per entry) into the period's non-finite counts."""
+    return add_tallied(plan, s, values, mask, nonfinite, _no_tally(values))[0]
+
+
+def add_tallied(
+    plan: StreamPlan,
+    s: StreamState,
+    values: jax.Array,
+    mask: jax.Array,
+    nonfinite: jax.Array | None,
+    tally: jax.Array,
+) -> tuple[StreamState, jax.Array]:
+    """`add`, and the sum of each row of `tally[C, B]` (int32): `[C]`. The sums are taken
+    in the batch's own reduction, where a separate count would be one more kernel."""
     dt = plan.dtype
     wt = _weight_dtype(dt)
     # Deviations from the running mean keep the moments small, so float32 stays accurate
@@ -254,7 +267,26 @@ def add(
     shift = s.mean
     if nonfinite is None:
         nonfinite = jnp.zeros(values.shape, jnp.int32)
-    k, bsum, bmin, bmax, mb, m2b, bad = _batch(values, mask, nonfinite, shift, wt)
+    if plan.ema_rows or plan.windows or plan.hists or plan.sketches:
+        values, mask = gathered(values), gathered(mask)
+    # One arrival rank shared by every row that needs one (EMA and window rows): how
+    # many of the row's values arrive after each one (`k - 1 - rank`). A reverse cumsum
+    # gives it without `k`, so the EMA's weights are known before the batch is reduced
+    # and its weighted sum is one more operand of the batch's reduction.
+    ranked = plan.ranked_rows
+    after = (
+        jax.lax.cumsum(_take(ranked, mask).astype(jnp.int32), axis=1, reverse=True) - 1
+        if ranked
+        else None
+    )
+    at = {row: i for i, row in enumerate(ranked)}
+    ema_in = None
+    if plan.ema_rows:
+        sub = tuple(at[r] for r in plan.ema_rows)
+        ema_in = _ema_operands(plan, s, values, mask, _take(sub, after), shift)
+    k, bsum, bmin, bmax, mb, m2b, bad, ema_sums, tallies = _batch(
+        values, mask, nonfinite, shift, wt, ema_in, tally
+    )
 
     kf = k.astype(wt)
     na = _count.as_float(s.count, wt)
@@ -273,20 +305,12 @@ def add(
     vmin = jnp.where(some, jnp.minimum(s.min, bmin), s.min)
     vmax = jnp.where(some, jnp.maximum(s.max, bmax), s.max)
 
-    if plan.ema_rows or plan.windows or plan.hists or plan.sketches:
-        values, mask = gathered(values), gathered(mask)
-    # One arrival rank (a cumsum over envs, the costliest op here) shared by every row
-    # that needs one: EMA and window rows.
-    ranked = plan.ranked_rows
-    rank = jnp.cumsum(_take(ranked, mask), axis=1, dtype=jnp.int32) - 1 if ranked else None
-    at = {row: i for i, row in enumerate(ranked)}
     ema, ema_off, ema_w, ema_n = s.ema, s.ema_off, s.ema_w, s.ema_n
     ema_rings = s.ema_rings
     if plan.ema_rows:
-        sub = tuple(at[r] for r in plan.ema_rows)
         er = plan.ema_rows
         ek = _take(er, k)
-        ema, ema_off, ema_w = _ema_add(plan, s, values, mask, _take(sub, rank), k, mean)
+        ema, ema_off, ema_w = _ema_update(plan, s, k, shift, mean, *ema_sums)
         is_ema = np.isin(np.arange(len(plan.rows)), er)
         ema_n = ema_n + jnp.where(is_ema, jnp.minimum(k, _INT32_MAX - ema_n), 0)
         ema_rings = tuple(
@@ -297,7 +321,7 @@ def add(
                 s.steps,
                 _take(tuple(plan.ema_rows[j] for j in g.rows), values),
                 _take(tuple(plan.ema_rows[j] for j in g.rows), mask),
-                _take(tuple(sub[j] for j in g.rows), rank),
+                _take(tuple(sub[j] for j in g.rows), after),
                 _take(g.rows, ek),
             )
             for g, ring in zip(plan.ema_groups, s.ema_rings)
@@ -309,7 +333,7 @@ def add(
             s.steps,
             _take(g.rows, values),
             _take(g.rows, mask),
-            _take(tuple(at[r] for r in g.rows), rank),
+            _take(tuple(at[r] for r in g.rows), after),
             _take(g.rows, k),
         )
         # `pos` and `filled` of every row, elementwise in `k` (rows of other groups keep
@@ -327,7 +351,7 @@ def add(
         _sketch.add(c, _sketch.slot(g, _take(g.rows, values), _take(g.rows, mask)))
         for g, c in zip(plan.sketches, s.sketches)
     )
-    return s._replace(
+    new = s._replace(
         count=_count.add(s.count, k),
         # `k < 0` never holds: reading `k` here lets XLA update this count in the same
         # kernel as the other [R] fields (sibling fusions must share an operand).
@@ -349,6 +373,7 @@ def add(
         hists=hists,
         sketches=sketches,
     )
+    return new, tallies
 
 
 def _window(g: WindowGroup, w: Ring) -> Ring:
@@ -367,9 +392,11 @@ def _widened(g: WindowGroup, ring: Ring, rows: int) -> Ring:
     return ring._replace(pos=spread(ring.pos), filled=spread(ring.filled))
 
 
-def _batch(values, mask, nonfinite, shift, wt):
+def _batch(values, mask, nonfinite, shift, wt, ema_in, tally):
     """Per row of a batch `values[R, B]` where `mask`: the count, sum, min, max, and the
-    mean and sum of squared deviations of `values - shift`; and the sum of `nonfinite`.
+    mean and sum of squared deviations of `values - shift`; the sum of `nonfinite`; and
+    with `ema_in` (`_ema_operands`) the sum of its weighted deviations and the first
+    masked deviation per row (else an empty tuple); the sum of each row of `tally[C, B]`.
 
     On accelerators one reduction gives them all: its combiner merges the moments
     pairwise (Chan's rule), so no first pass for a pivot is needed. The CPU reduces a
@@ -382,12 +409,14 @@ def _batch(values, mask, nonfinite, shift, wt):
         mask,
         nonfinite,
         shift,
-        cpu=lambda v, m, nf, sh: batch_two_pass(v, m, nf, sh, wt),
-        default=lambda v, m, nf, sh: batch_one_pass(v, m, nf, sh, wt),
+        () if ema_in is None else ema_in,
+        tally,
+        cpu=lambda v, m, nf, sh, e, t: batch_two_pass(v, m, nf, sh, wt, e, t),
+        default=lambda v, m, nf, sh, e, t: batch_one_pass(v, m, nf, sh, wt, e, t),
     )
 
 
-def batch_two_pass(values, mask, nonfinite, shift, wt):
+def batch_two_pass(values, mask, nonfinite, shift, wt, ema_in=(), tally=None):
     """`_batch` in two passes: count, sum, min, max, then moments around a pivot (`shift`
     where it is non-zero, else the batch's mean)."""
     dt = values.dtype
@@ -403,10 +432,16 @@ def batch_two_pass(values, mask, nonfinite, shift, wt):
     mb = s1 / kd
     m2b = jnp.maximum(s2 - s1 * mb, 0)
     bad = jnp.sum(nonfinite, axis=1, dtype=jnp.int32)
-    return k, bsum, bmin, bmax, mb + (pivot - shift), m2b, bad
+    ema_sums = ()
+    if ema_in:
+        wdev, dev = ema_in
+        first = jnp.argmax(mask, axis=1)[:, None]
+        ema_sums = (jnp.sum(wdev, axis=1), jnp.take_along_axis(dev, first, axis=1)[:, 0])
+    tallies = _no_tally(values) if tally is None else jnp.sum(tally, axis=1, dtype=jnp.int32)
+    return k, bsum, bmin, bmax, mb + (pivot - shift), m2b, bad, ema_sums, tallies
 
 
-def batch_one_pass(values, mask, nonfinite, shift, wt):
+def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=(), tally=None):
     """`_batch` as one variadic reduction (Chan's pairwise moments in its combiner)."""
     dt = values.dtype
     zero = jnp.zeros_like(values)
@@ -429,9 +464,21 @@ def batch_one_pass(values, mask, nonfinite, shift, wt):
         np.int32(0),
     )
 
+    if ema_in:
+        # The EMA's weighted sum, and the first masked deviation (least column index).
+        wdev, dev = ema_in
+        col = jnp.arange(values.shape[1], dtype=jnp.int32)[None, :]
+        operands += (wdev, jnp.where(mask, col, values.shape[1]), dev)
+        inits += (np.array(0, dt), np.int32(values.shape[1]), np.array(0, dt))
+    tally = _no_tally(values) if tally is None else tally
+    # Each tally row as one more summed operand, broadcast over the batch's rows.
+    operands += tuple(jnp.broadcast_to(t[None, :], values.shape) for t in tally)
+    inits += (np.int32(0),) * tally.shape[0]
+    e = 10 if ema_in else 7
+
     def combine(x, y):
-        ka, sa, lo_a, hi_a, ma, qa, na = x
-        kb, sb, lo_b, hi_b, mb, qb, nb = y
+        ka, sa, lo_a, hi_a, ma, qa, na = x[:7]
+        kb, sb, lo_b, hi_b, mb, qb, nb = y[:7]
         fa, fb = ka.astype(wt), kb.astype(wt)
         frac = (fb / jnp.maximum(fa + fb, 1)).astype(dt)
         delta = mb - ma
@@ -440,27 +487,60 @@ def batch_one_pass(values, mask, nonfinite, shift, wt):
         m = jnp.where(both, ma + delta * frac, jnp.where(ka > 0, ma, mb))
         q = jnp.where(both, qa + qb + delta * delta * (fa.astype(dt) * frac), qa + qb)
         lo, hi = jnp.minimum(lo_a, lo_b), jnp.maximum(hi_a, hi_b)
-        return ka + kb, sa + sb, lo, hi, m, q, na + nb
+        out = (ka + kb, sa + sb, lo, hi, m, q, na + nb)
+        if ema_in:
+            wa, ia, da = x[7:10]
+            wb, ib, db = y[7:10]
+            a_first = ia <= ib
+            out += (wa + wb, jnp.where(a_first, ia, ib), jnp.where(a_first, da, db))
+        return (*out, *(ta + tb for ta, tb in zip(x[e:], y[e:])))
 
     # Deviations from `shift` (the running mean) go in, not the values: taking the shift
     # off the batch's mean afterwards saves ~1 us/step on an H100 but rounds Chan's
     # delta to the ulp of the mean, a variance bias of ~(ulp/sigma)^2 for data far from
     # zero (1e-4 relative at mean 1e6, std 1).
-    return jax.lax.reduce(operands, inits, combine, (1,))
+    out = jax.lax.reduce(operands, inits, combine, (1,))
+    tallies = jnp.stack([t[0] for t in out[e:]]) if out[e:] else jnp.zeros((0,), jnp.int32)
+    return (*out[:7], (out[7], out[9]) if ema_in else (), tallies)
+
+
+def _no_tally(values: jax.Array) -> jax.Array:
+    return jnp.zeros((0, values.shape[1]), jnp.int32)
 
 
 _INT32_MAX = np.int32(np.iinfo(np.int32).max)
 
 
-def _ema_add(plan: StreamPlan, s: StreamState, values, mask, r, k, shift):
-    """New (ema, ema_off, ema_w), every row ([R]; rows without an EMA keep theirs)."""
-    # Sequential EMA over the k arrivals in closed form: value with rank r gets weight
-    # c(1-c)^(k-1-r); the old EMA gets (1-c)^k. Unseeded, the first arrival seeds it
-    # (weight (1-c)^(k-1)) and the old EMA gets none. The EMA is kept relative to an
-    # offset fixed at seeding (the period's mean as of this batch): a float32 EMA of
-    # values far from zero otherwise loses the low bits of every update and drifts.
-    # Only the weighted sum over the batch is done on the EMA rows; every other step is
-    # elementwise over all R rows, so that it joins the one update of the [R] fields.
+def _ema_operands(plan: StreamPlan, s: StreamState, values, mask, after, shift):
+    """The EMA's inputs to the batch's reduction, every row ([R, B]; zero rows where a
+    row has no EMA): the weighted deviations `c(1-c)^after (x - off)`, and the deviations
+    `x - off` (the reduction keeps each row's first one, the seed)."""
+    # Sequential EMA over the k arrivals in closed form: the value with `after` later
+    # arrivals gets weight c(1-c)^after; the old EMA gets (1-c)^k. Unseeded, the first
+    # arrival seeds it: it weighs (1-c)^(k-1), i.e. c(1-c)^(k-1) plus (1-c)^k of itself
+    # in place of the old EMA (added in `_ema_update`). The EMA is kept relative to an
+    # offset fixed at seeding: a float32 EMA of values far from zero otherwise loses the
+    # low bits of every update and drifts.
+    er = plan.ema_rows
+    dt = plan.dtype
+    off = jnp.where(s.ema_w > 0, s.ema_off, shift)
+    c = jnp.asarray(plan.ema_coeffs, dt)[:, None]
+    dev = jnp.where(_take(er, mask), _take(er, values) - _take(er, off)[:, None], 0)
+    wdev = c * jnp.power(1 - c, after.astype(dt)) * dev
+    # Spread over all rows before the reduction (zero rows), not after: its sums then
+    # come out [R], and the update after it is elementwise over the [R] fields.
+    at = {row: j for j, row in enumerate(er)}
+    zero = jnp.zeros_like(dev[0])
+
+    def spread(x: jax.Array) -> jax.Array:
+        return jnp.stack([x[at[i]] if i in at else zero for i in range(len(plan.rows))])
+
+    return spread(wdev), spread(dev)
+
+
+def _ema_update(plan: StreamPlan, s: StreamState, k, shift, mean, new, first):
+    """New (ema, ema_off, ema_w), every row ([R]; rows without an EMA keep theirs), from
+    the batch's sums of `_ema_operands`: `new` (weighted) and `first` (the seed)."""
     er = plan.ema_rows
     dt = plan.dtype
     rows = len(plan.rows)
@@ -468,19 +548,14 @@ def _ema_add(plan: StreamPlan, s: StreamState, values, mask, r, k, shift):
     is_ema = np.array([i in coeff for i in range(rows)])
     c_all = jnp.asarray([coeff.get(i, 1.0) for i in range(rows)], dt)
     seeded = s.ema_w > 0
-    off = jnp.where(seeded, s.ema_off, shift)
-    ke = _take(er, k)
-    c = jnp.asarray(plan.ema_coeffs, dt)[:, None]
-    decay = jnp.power(1 - c, (ke[:, None] - 1 - r).astype(dt))
-    w = jnp.where(_take(er, seeded)[:, None] | (r > 0), c * decay, decay)
-    dev = jnp.where(_take(er, mask), w * (_take(er, values) - _take(er, off)[:, None]), 0)
-    # Spread over all rows before the sum (zero rows), not after: the sum then comes out
-    # [R] from the reduction itself.
-    at = {row: j for j, row in enumerate(er)}
-    zero = jnp.zeros_like(dev[0])
-    new = jnp.sum(jnp.stack([dev[at[i]] if i in at else zero for i in range(rows)]), axis=1)
+    # The deviations were taken off `base`, known before the batch. A seeding batch's
+    # weights sum to 1, so its EMA moves to the offset fixed now, the period's mean as of
+    # this batch, by adding `base - off`: the rounding of that first batch then decays
+    # like any value, where an offset of `base` (0 for a row never seen) would stay.
+    base = jnp.where(seeded, s.ema_off, shift)
+    off = jnp.where(seeded, s.ema_off, mean)
     keep = jnp.power(1 - c_all, k.astype(dt))
-    ema = jnp.where(seeded, keep * s.ema, 0) + new
+    ema = keep * jnp.where(seeded, s.ema, first) + new + (base - off)
     some = is_ema & (k > 0)
     ema = jnp.where(some, ema, s.ema)
     ema_off = jnp.where(some, off, s.ema_off)
@@ -488,17 +563,18 @@ def _ema_add(plan: StreamPlan, s: StreamState, values, mask, r, k, shift):
     return ema, ema_off, ema_w
 
 
-def _ring_add(w: Ring, step: jax.Array, values, mask, r, k) -> Ring:
-    # Only the last `size` arrivals survive; they go to consecutive ring slots in order,
-    # so the slots written on this step are the `stored` ones from `pos` on: the values
-    # need a scatter, their stamps only a select.
+def _ring_add(w: Ring, step: jax.Array, values, mask, after, k) -> Ring:
+    # Only the last `size` arrivals survive (those with fewer than `size` after them);
+    # they go to consecutive ring slots in order, so the slots written on this step are
+    # the `stored` ones from `pos` on: the values need a scatter, their stamps only a
+    # select.
     n = w.buf.shape[1]
-    skip = jnp.maximum(k - n, 0)[:, None]
-    keep = mask & (r >= skip)
-    slot = jnp.where(keep, (w.pos[:, None] + r - skip) % n, n)  # n = out of bounds: dropped
+    stored = jnp.minimum(k, n)
+    keep = mask & (after < n)
+    last = (w.pos + stored - 1)[:, None]
+    slot = jnp.where(keep, (last - after) % n, n)  # n = out of bounds: dropped
     rows = jnp.broadcast_to(jnp.arange(values.shape[0], dtype=jnp.int32)[:, None], slot.shape)
     buf = w.buf.at[rows, slot].set(values, mode="drop")
-    stored = jnp.minimum(k, n)
     j = jnp.arange(n, dtype=jnp.int32)[None, :]
     written = (j - w.pos[:, None]) % n < stored[:, None]
     stamp = jnp.where(written, step, w.stamp)
