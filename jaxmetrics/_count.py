@@ -36,9 +36,11 @@ def zeros(shape: tuple[int, ...] = ()) -> Count:
 
 def add(count: Count, inc: jax.Array) -> Count:
     """Adds a non-negative integer increment (< 2^32) with carry into the high word."""
-    lo = count.lo + jnp.asarray(inc).astype(jnp.uint32)
-    carry = (lo < count.lo).astype(jnp.uint32)
-    return Count(count.hi + carry, lo)
+    inc = jnp.asarray(inc).astype(jnp.uint32)
+    # The carry from the old low word, not the new one: both words are then functions
+    # of (lo, inc), which XLA computes in one kernel without keeping a copy of `lo`.
+    carry = (inc > ~count.lo).astype(jnp.uint32)
+    return Count(count.hi + carry, count.lo + inc)
 
 
 def add_at(count: Count, index: int, inc: jax.Array) -> Count:
@@ -58,9 +60,8 @@ def add_at(count: Count, index: int, inc: jax.Array) -> Count:
 
 def merge(a: Count, b: Count) -> Count:
     """Exact sum of two counts."""
-    lo = a.lo + b.lo
-    carry = (lo < a.lo).astype(jnp.uint32)
-    return Count(a.hi + b.hi + carry, lo)
+    carry = (b.lo > ~a.lo).astype(jnp.uint32)
+    return Count(a.hi + b.hi + carry, a.lo + b.lo)
 
 
 def as_float(count: Count, dtype: jnp.dtype) -> jax.Array:

@@ -960,13 +960,17 @@ class Logger(AbstractContextManager):
     def _check_leading(self, state: Any) -> None:
         if not isinstance(state, MetricsState):
             raise TypeError(f"Logger.flush: expected a MetricsState, got {type(state).__name__}.")
-        ref = next(
-            (x for x in (state.counters, state.logged, state.finished) if x is not None), None
+        # A leaf and its own axes (counters [C], logged [R], finished [shards, R]).
+        leaves = (
+            (None if state.counters is None else state.counters.lo, 1),
+            (None if state.logged is None else state.logged.mean, 1),
+            (None if state.finished is None else state.finished.mean, 2),
         )
-        if ref is None:
+        found = next(((x, own) for x, own in leaves if x is not None), None)
+        if found is None:
             return
-        leaf = ref.lo if state.counters is not None else ref.mean
-        lead = tuple(leaf.shape[:-1])
+        leaf, own = found
+        lead = tuple(leaf.shape[:-own])
         want = () if self.runs == 1 else (self.runs,)
         if lead != want:
             hint = (

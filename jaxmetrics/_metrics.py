@@ -18,14 +18,15 @@ from ._tags import TagInfo
 
 BUILTIN_COUNTERS = ("env_steps", "episodes")
 GROUP_COUNTER = "ungrouped"
-# Counted per env shard in MetricsState.ended (column 0: episodes; then per grouping).
-_SHARD_COUNTERS = ("episodes", GROUP_COUNTER)
+# Counted per env shard in MetricsState.ended, one column each, in this order (the last
+# only with groups): a step updates them in one kernel, with no cross-device reduction.
+_SHARD_COUNTERS = ("env_steps", "episodes", GROUP_COUNTER)
 
 # Version of the MetricsState's array layout, part of the spec's identity: a checkpoint of
 # another layout is refused as another spec's instead of being misread. 2: running
 # episodes in three slots per env (`_episode.SLOTS`); EMA fields and window positions of
-# every stream row.
-STATE_LAYOUT = 2
+# every stream row. 3: env steps counted per shard (`ended`); arrival steps per row.
+STATE_LAYOUT = 3
 
 
 def _is_numeric(dtype) -> bool:
@@ -268,7 +269,8 @@ class Metrics:
         if len(set(user_counters)) != len(user_counters):
             raise ValueError(f"duplicate counter names in {list(user_counters)}.")
         self.counter_names = builtin + user_counters
-        # "episodes" and "ungrouped" are counted per env shard (MetricsState.ended).
+        # "env_steps", "episodes" and "ungrouped" are counted per env shard
+        # (MetricsState.ended).
         self._shard_counters = tuple(c for c in _SHARD_COUNTERS if c in builtin)
         self._stored_counters = tuple(c for c in self.counter_names if c not in _SHARD_COUNTERS)
         self.prefixes = {"episode": episode_prefix, "logged": logged_prefix}
@@ -619,9 +621,9 @@ class Metrics:
         plan = self._ep_plan
         assert plan is not None
 
-        # Per shard: episodes ended, and those whose group index is out of range, counted
-        # in the fold's own reduction.
-        shard_counts = [done]
+        # Per shard (`_SHARD_COUNTERS`): env steps, episodes ended, and those whose group
+        # index is out of range, counted in the fold's own reduction.
+        shard_counts = [jnp.ones_like(done), done]
         if group_ids:
             out_of_range = [
                 done & ((i < 0) | (i >= len(g.names))) for g, i in zip(self._groupings, group_ids)
@@ -639,14 +641,10 @@ class Metrics:
             finished, per_shard = jax.tree.map(lambda a: a[None], fold(*first))
         else:
             finished, per_shard = jax.vmap(fold)(*args)
-        counters = state.counters
-        assert counters is not None
-        inc = jnp.zeros((len(self._stored_counters),), jnp.int32).at[0].set(num_envs)
         return state._replace(
             running=running,
             finished=finished,
             ended=_count.add(state.ended, per_shard),  # type: ignore[arg-type]
-            counters=_count.add(counters, inc),
         )
 
     def _group_ids(self, step_input: Any, num_envs: int) -> list[tuple[jax.Array, str]]:
@@ -744,7 +742,6 @@ class Metrics:
                 f"increment: unknown counter {name!r}; declare it in Metrics(counters=...). "
                 f"Known: {list(self.counter_names)}."
             )
-        assert state.counters is not None
         if isinstance(by, (int, np.integer)) and not isinstance(by, bool):
             if not -(2**31) <= by < 2**32:
                 raise ValueError(f"increment: `by` must be in [-2^31, 2^32), got {by}.")
@@ -756,8 +753,9 @@ class Metrics:
                 f"increment: `by` must be a scalar int, got {by.dtype}{list(by.shape)}."
             )
         if name in self._shard_counters:
-            raise ValueError(f"increment: {name!r} is counted by update from done.")
+            raise ValueError(f"increment: {name!r} is counted by update; it cannot be incremented.")
         j = self._stored_counters.index(name)
+        assert state.counters is not None
         return state._replace(counters=_count.add_at(state.counters, j, by))
 
     def reset_period(self, state: MetricsState) -> MetricsState:

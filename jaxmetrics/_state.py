@@ -20,9 +20,11 @@ class MetricsState(NamedTuple):
 
     running: EpisodeState | None  # running episodes, [rows, num_envs] per field
     finished: StreamState | None  # per shard: report statistics over finished episodes
-    ended: Count | None  # [shards] episodes ended (done flags) per shard, lifetime
+    # [shards, K] lifetime counts per shard: env steps, episodes ended (done flags), and
+    # with groups episodes of no group.
+    ended: Count | None
     logged: StreamState | None  # report statistics over logged values
-    counters: Count | None  # [C] lifetime counters, "episodes" excepted (see `ended`)
+    counters: Count | None  # [C] lifetime counters fed by `increment`
     spec: tuple  # the spec's identity, in the tree structure only (see `spec_id`)
 
 

@@ -334,3 +334,26 @@ def test_both_histogram_counting_paths_match_numpy(slots, rows):
     want = np.stack([np.bincount(r[r < 11], minlength=11) for r in slot])
     for fn in (slot_counts_scatter, slot_counts_compare):
         np.testing.assert_array_equal(jax.jit(fn, static_argnums=1)(jnp.asarray(slot), 11), want)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.integers(1, 3).flatmap(
+        lambda r: st.integers(0, 200).flatmap(
+            lambda n: st.lists(
+                st.lists(st.booleans(), min_size=n, max_size=n), min_size=r, max_size=r
+            )
+        )
+    )
+)
+def test_arrival_ranks_count_the_later_entries_of_each_row(rows):
+    # The window slots and EMA weights come from these ranks; they are computed in two
+    # levels (blocks of entries, then blocks), checked here against a Python count.
+    from jaxmetrics import _stream
+
+    mask = np.array(rows, dtype=bool).reshape(len(rows), -1)
+    after, k = jax.jit(_stream.arrivals_after)(jnp.asarray(mask))
+    for r, row in enumerate(mask):
+        assert int(k[r]) == int(row.sum())
+        for j in np.flatnonzero(row):
+            assert int(after[r, j]) == int(row[j + 1 :].sum())
