@@ -130,6 +130,12 @@ class StreamPlan:
         """Rows whose statistics depend on arrival order (EMA, windows)."""
         return tuple(sorted(set(self.ema_rows).union(*(g.rows for g in self.windows))))
 
+    def ema_by_row(self, fill: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per stream row: whether it has an EMA, and its coefficient (`fill` if not)."""
+        coeff = dict(zip(self.ema_rows, self.ema_coeffs))
+        rows = range(len(self.rows))
+        return np.array([i in coeff for i in rows]), np.array([coeff.get(i, fill) for i in rows])
+
     @classmethod
     def build(cls, rows: Sequence[MetricSpec], dtype) -> "StreamPlan":
         rows = tuple(rows)
@@ -310,7 +316,7 @@ def add_tallied(
         er = plan.ema_rows
         ek = _take(er, k)
         ema, ema_off, ema_w = _ema_update(plan, s, k, shift, mean, ema_sum)
-        is_ema = np.isin(np.arange(len(plan.rows)), er)
+        is_ema = plan.ema_by_row(0.0)[0]
         ema_n = ema_n + jnp.where(is_ema, jnp.minimum(k, _INT32_MAX - ema_n), 0)
         ema_rings = tuple(
             ring
@@ -543,27 +549,28 @@ def _ema_operands(plan: StreamPlan, s: StreamState, values, mask, after, k, shif
     # to an offset fixed at seeding: a float32 EMA of values far from zero otherwise
     # loses the low bits of every update and drifts.
     dt = plan.dtype
-    coeff = dict(zip(plan.ema_rows, plan.ema_coeffs))
-    rows = range(len(plan.rows))
-    is_ema = np.array([i in coeff for i in rows])[:, None]
-    c = jnp.asarray([coeff.get(i, 0.0) for i in rows], dt)[:, None]
+    is_ema, coeff = plan.ema_by_row(0.0)
+    c = jnp.asarray(coeff, dt)[:, None]
     seeded = s.ema_w > 0
     off = jnp.where(seeded, s.ema_off, shift)
-    dev = jnp.where(mask & is_ema, values - off[:, None], 0)
+    dev = jnp.where(mask & is_ema[:, None], values - off[:, None], 0)
+    return _ema_weights(c, after, ~seeded[:, None], k[:, None], dt) * dev
+
+
+def _ema_weights(c, after, seeding, count, dt):
+    """The closed-form EMA weights of values with `after` later arrivals: c(1-c)^after,
+    except the first of `count` values where `seeding`, which seeds the EMA and weighs
+    (1-c)^(count-1)."""
     decay = jnp.power(1 - c, after.astype(dt))
-    seed = ~seeded[:, None] & (after == k[:, None] - 1)
-    return jnp.where(seed, decay, c * decay) * dev
+    return jnp.where(seeding & (after == count - 1), decay, c * decay)
 
 
 def _ema_update(plan: StreamPlan, s: StreamState, k, shift, mean, new):
     """New (ema, ema_off, ema_w), every row ([R]; rows without an EMA keep theirs), from
     the batch's sum of `_ema_operands`, `new`."""
-    er = plan.ema_rows
     dt = plan.dtype
-    rows = len(plan.rows)
-    coeff = dict(zip(er, plan.ema_coeffs))
-    is_ema = np.array([i in coeff for i in range(rows)])
-    c_all = jnp.asarray([coeff.get(i, 1.0) for i in range(rows)], dt)
+    is_ema, coeff = plan.ema_by_row(1.0)
+    c_all = jnp.asarray(coeff, dt)
     seeded = s.ema_w > 0
     # The deviations were taken off `base`, known before the batch. A seeding batch's
     # weights sum to 1, so its EMA moves to the offset fixed now, the period's mean as of
@@ -717,9 +724,7 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
         folded = jnp.where(exact, total, jnp.minimum(total, size))[:, None]
         p = vals.shape[1] - 1 - jnp.arange(vals.shape[1], dtype=jnp.int32)[None, :]
         c = jnp.asarray(g.coeff, dt)
-        decay = jnp.power(1 - c, p.astype(dt))
-        seed = exact[:, None] & (p == folded - 1)
-        w = jnp.where(seed, decay, c * decay)
+        w = _ema_weights(c, p, exact[:, None], folded, dt)
         dev = vals - off[rows][:, None]
         new = jnp.sum(jnp.where(valid & (p < folded), w * dev, 0), axis=1)
         keep = jnp.where(exact, 0, jnp.power(1 - c, folded[:, 0].astype(dt)) * tail[rows])
