@@ -4,6 +4,7 @@ bug class these settings catch. Eight CPU devices make the sharding tests real (
 import os
 
 import jax
+import pytest
 
 jax.config.update("jax_num_cpu_devices", 8)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
@@ -16,3 +17,12 @@ jax.config.update(
     ),
 )
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+@pytest.fixture
+def env_sharded() -> jax.sharding.NamedSharding:
+    """The env axis split over 2 CPU devices (an Auto mesh axis "env")."""
+    mesh = jax.make_mesh(
+        (2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,), devices=jax.devices("cpu")[:2]
+    )
+    return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))

@@ -153,11 +153,7 @@ def test_emit_nonfinite_raise_surfaces_at_close_after_writing():
     assert [r.step for r in memory.records] == [0, 1]
 
 
-def test_emit_of_a_state_sharded_over_devices():
-    mesh = jax.make_mesh(
-        (2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,), devices=jax.devices("cpu")[:2]
-    )
-    env_sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))
+def test_emit_of_a_state_sharded_over_devices(env_sharded):
     metrics = _make()
     memory = jm.MemoryWriter()
     logger = jm.Logger(metrics, [memory])

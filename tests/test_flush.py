@@ -390,11 +390,7 @@ def test_running_episodes_are_reported_on_request():
     assert "Episode_Metrics/r" not in scalars  # no episode finished: a gap
 
 
-def test_flush_of_a_state_sharded_over_devices_equals_the_single_device_flush():
-    mesh = jax.make_mesh(
-        (2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,), devices=jax.devices("cpu")[:2]
-    )
-    env_sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))
+def test_flush_of_a_state_sharded_over_devices_equals_the_single_device_flush(env_sharded):
     metrics = jm.Metrics(terms={"r": jm.Term(lambda x: x, stats=("mean", "max", "count"))})
     x = jnp.arange(8.0, dtype=jnp.float32)
     done = jnp.arange(8) % 2 == 0

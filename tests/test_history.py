@@ -124,11 +124,7 @@ def test_history_writes_the_records_emit_writes_per_seed_under_vmap():
     assert [r.step for r in summary_history.records] == ends
 
 
-def test_history_of_a_state_sharded_over_devices():
-    mesh = jax.make_mesh(
-        (2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,), devices=jax.devices("cpu")[:2]
-    )
-    env_sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))
+def test_history_of_a_state_sharded_over_devices(env_sharded):
     metrics = _make()
     memory = jm.MemoryWriter()
     logger = jm.Logger(metrics, [memory])
