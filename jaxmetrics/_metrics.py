@@ -26,7 +26,8 @@ _SHARD_COUNTERS = ("env_steps", "episodes", GROUP_COUNTER)
 # another layout is refused as another spec's instead of being misread. 2: running
 # episodes in three slots per env (`_episode.SLOTS`); EMA fields and window positions of
 # every stream row. 3: env steps counted per shard (`ended`); arrival steps per row.
-STATE_LAYOUT = 3
+# 4: `ended` padded to whole multiples of the episode rows (`_stream.tally_width`).
+STATE_LAYOUT = 4
 
 
 def _is_numeric(dtype) -> bool:
@@ -418,7 +419,11 @@ class Metrics:
             finished=jax.tree.map(per_shard, _stream.init(self._ep_plan, shards > 1))
             if has_ep
             else None,
-            ended=_count.zeros((shards, len(self._shard_counters))) if has_ep else None,
+            ended=_count.zeros(
+                (shards, _stream.tally_width(self._ep_plan, len(self._shard_counters)))
+            )
+            if has_ep
+            else None,
             logged=_stream.init(self._lg_plan) if self._lg_plan else None,
             counters=_count.zeros((n_counters,)) if n_counters else None,
             spec=self._spec,
@@ -631,21 +636,24 @@ class Metrics:
             shard_counts.append(jnp.sum(jnp.stack(out_of_range), axis=0, dtype=jnp.int32))
         tally = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
 
-        def fold(st, v, m, n, t):
-            return _stream.add_tallied(plan, st, v, m, n, t)
+        def fold(st, v, m, n, t, e):
+            return _stream.add_tallied(plan, st, v, m, n, t, e)
 
-        args = (state.finished, by_shard(values), by_shard(ok), by_shard(bad), by_shard(tally))
+        args = (
+            state.finished,
+            by_shard(values),
+            by_shard(ok),
+            by_shard(bad),
+            by_shard(tally),
+            state.ended,
+        )
         if shards == 1:
             # One shard: the plain fold (a vmap of size 1 still batches its scatters).
             first = jax.tree.map(lambda a: a[0], args)
-            finished, per_shard = jax.tree.map(lambda a: a[None], fold(*first))
+            finished, ended = jax.tree.map(lambda a: a[None], fold(*first))
         else:
-            finished, per_shard = jax.vmap(fold)(*args)
-        return state._replace(
-            running=running,
-            finished=finished,
-            ended=_count.add(state.ended, per_shard),  # type: ignore[arg-type]
-        )
+            finished, ended = jax.vmap(fold)(*args)
+        return state._replace(running=running, finished=finished, ended=ended)
 
     def _group_ids(self, step_input: Any, num_envs: int) -> list[tuple[jax.Array, str]]:
         """Each grouping's group index per env (`[num_envs]` int32), checked, with where

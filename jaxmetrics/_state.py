@@ -21,7 +21,7 @@ class MetricsState(NamedTuple):
     running: EpisodeState | None  # running episodes, [rows, num_envs] per field
     finished: StreamState | None  # per shard: report statistics over finished episodes
     # [shards, K] lifetime counts per shard: env steps, episodes ended (done flags), and
-    # with groups episodes of no group.
+    # with groups episodes of no group; then zeros up to a multiple of the episode rows.
     ended: Count | None
     logged: StreamState | None  # report statistics over logged values
     counters: Count | None  # [C] lifetime counters fed by `increment`

@@ -252,7 +252,15 @@ def add(
 ) -> StreamState:
     """Feeds `values[R, B]` where `mask`, column order being arrival order, and counts
     `nonfinite[R, B]` (int32, per entry) into the period's non-finite counts."""
-    return add_tallied(plan, s, values, mask, nonfinite, _no_tally(values))[0]
+    return add_tallied(plan, s, values, mask, nonfinite, _no_tally(values), _count.zeros((0,)))[0]
+
+
+def tally_width(plan: StreamPlan, tallied: int) -> int:
+    """Width of the counts that `add_tallied` adds `tallied` tally rows into: padded to
+    whole multiples of the stream's rows, so that (for up to R tally rows) their update
+    is shaped like every other per-row field and joins that one kernel."""
+    rows = len(plan.rows)
+    return -(-tallied // rows) * rows if rows else 0
 
 
 def add_tallied(
@@ -262,10 +270,15 @@ def add_tallied(
     mask: jax.Array,
     nonfinite: jax.Array | None,
     tally: jax.Array,
-) -> tuple[StreamState, jax.Array]:
-    """`add`, and the sum of each row of `tally[C, B]` (int32): `[C]`. The sums are taken
-    in the batch's own reduction, where a separate count would be one more kernel."""
+    counts: Count,
+) -> tuple[StreamState, Count]:
+    """`add`, and `counts` (`[tally_width(plan, C)]`) plus the sum of each row of
+    `tally[C, B]` (int32), in its first C entries. The sums are taken in the batch's own
+    reduction and added in the per-row fields' kernel, where separate counts would be
+    two more kernels."""
     dt = plan.dtype
+    width = counts.lo.shape[0]
+    tally = jnp.pad(tally, ((0, width - tally.shape[0]), (0, 0)))
     wt = _weight_dtype(dt)
     # Deviations from the running mean keep the moments small, so float32 stays accurate
     # for data far from zero. An empty period's mean is 0 (init, reset_period and merge
@@ -280,10 +293,8 @@ def add_tallied(
     # One arrival rank shared by every row that needs one (EMA and window rows): how
     # many of the row's values arrive after each one (`k - 1 - rank`). It is known
     # before the batch is reduced, so the EMA's weighted sum is one more operand of the
-    # batch's reduction. With an EMA every row is ranked: the EMA operand is then an
-    # elementwise function of the batch (zero weight outside EMA rows), where a stack of
-    # the EMA rows and zero rows made XLA write it out (H100: 1.4 us per step).
-    ranked = tuple(range(len(plan.rows))) if plan.ema_rows else plan.ranked_rows
+    # batch's reduction.
+    ranked = _ranked(plan)
     after, ranked_k = arrivals_after(_take(ranked, mask)) if ranked else (None, None)
     at = {row: i for i, row in enumerate(ranked)}
     ema_in = None
@@ -379,7 +390,16 @@ def add_tallied(
         hists=hists,
         sketches=sketches,
     )
-    return new, tallies
+    # Read through `k` like `nonfinite` above, to join the same kernel.
+    packs = width // len(plan.rows) if plan.rows else 0
+    return new, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, tallies))
+
+
+def _ranked(plan: StreamPlan) -> tuple[int, ...]:
+    """The rows `add` ranks by arrival. With an EMA every row is: the EMA operand is
+    then an elementwise function of the batch (zero weight outside EMA rows), where a
+    stack of the EMA rows and zero rows made XLA write it out (H100: 1.4 us per step)."""
+    return tuple(range(len(plan.rows))) if plan.ema_rows else plan.ranked_rows
 
 
 def arrivals_after(mask: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -428,7 +448,7 @@ def _batch(values, mask, nonfinite, shift, wt, ema_in, tally):
     """Per row of a batch `values[R, B]` where `mask`: the count, sum, min, max, and the
     mean and sum of squared deviations of `values - shift`; the sum of `nonfinite`; the
     sum of each row of `ema_in` (`_ema_operands`; None without EMA rows); the sum of each
-    row of `tally[C, B]`.
+    row of `tally[C, B]` (C a multiple of R, see `tally_width`).
 
     On accelerators one reduction gives them all: its combiner merges the moments
     pairwise (Chan's rule), so no first pass for a pivot is needed. The CPU reduces a
@@ -497,13 +517,11 @@ def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=None, tally=None):
         operands += (ema_in,)
         inits += (np.array(0, dt),)
     tally = _no_tally(values) if tally is None else tally
-    # The tally rows as the rows of summed operands shaped like the batch (zero rows
-    # after the last): their sums come out as one [R] array each, which the counts'
-    # update reads as a slice (several scalar outputs would need a concatenation).
-    rows, tallied = values.shape[0], tally.shape[0]
-    packs = -(-tallied // rows) if rows else 0
-    padded = jnp.pad(tally, ((0, packs * rows - tallied), (0, 0)))
-    operands += tuple(padded[i * rows : (i + 1) * rows] for i in range(packs))
+    # The tally rows as summed operands shaped like the batch: their sums come out as
+    # one [R] array each (several scalar outputs would need a concatenation).
+    rows = values.shape[0]
+    packs = tally.shape[0] // rows if rows else 0
+    operands += tuple(tally[i * rows : (i + 1) * rows] for i in range(packs))
     inits += (np.int32(0),) * packs
     e = 8 if has_ema else 7
 
@@ -528,7 +546,7 @@ def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=None, tally=None):
     # delta to the ulp of the mean, a variance bias of ~(ulp/sigma)^2 for data far from
     # zero (1e-4 relative at mean 1e6, std 1).
     out = jax.lax.reduce(operands, inits, combine, (1,))
-    tallies = jnp.concatenate(out[e:])[:tallied] if packs else jnp.zeros((0,), jnp.int32)
+    tallies = jnp.concatenate(out[e:]) if packs else jnp.zeros((0,), jnp.int32)
     return (*out[:7], out[7] if has_ema else None, tallies)
 
 

@@ -46,9 +46,11 @@ ARGS = [
     "--sharded-repeats", "1",
     "--sharded-devices", "1,2",
     "--sharded-processes", "2",
+    "--profile",
 ]  # fmt: skip
 SCENARIOS = {
     "isolated",
+    "kernels",
     "scaling_envs",
     "scaling_terms",
     "scaling_window",
@@ -155,6 +157,24 @@ def test_isolated_floor_and_jaxmetrics_match_a_float64_reference(result):
         want, _ = _episode_sums_f64(xs, dones, row)
         np.testing.assert_allclose(check["jaxmetrics_sums"][name], want, rtol=1e-6)
         np.testing.assert_allclose(check["floor_totals"][name], want, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_kernel_profile_names_the_ops_of_each_variant(result):
+    doc, _, _ = result
+    k = doc["scenarios"]["kernels"]
+    col = {c: i for i, c in enumerate(k["columns"])}
+    rows = k["rows"]
+    assert {r[col["variant"]] for r in rows} == {"floor", "full"}
+    for r in rows:
+        # Each profiled event is an op of the compiled program, found in its HLO.
+        assert r[col["shape"]] and r[col["fuses"]], r
+        assert r[col["us/step"]] > 0 and r[col["launches/step"]] > 0, r
+    # The full spec runs more kernels than the floor, and takes longer in them.
+    count = {v: sum(r[col["variant"]] == v for r in rows) for v in ("floor", "full")}
+    assert count["full"] > count["floor"]
+    totals = k["data"]["total_us_per_step"]
+    assert totals["full"] > totals["floor"] > 0
 
 
 @pytest.mark.slow

@@ -2,6 +2,8 @@
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -80,3 +82,34 @@ def test_env_steps_exact_past_2_pow_31():
     state = m.increment(state, "updates", 2**32 - 1)  # a Python int above int32's range
     assert m.to_host(m.compute(state))["Counters/updates"] == 3 * (2**31 + 7) + 2**32 - 1
     assert isinstance(host["Counters/env_steps"], int)
+
+
+@pytest.mark.parametrize(
+    "terms, groups",
+    [(1, 0), (1, 1), (4, 2)],
+    ids=["fewer-rows-than-counters", "grouped-fewer-rows", "more-rows-than-counters"],
+)
+def test_builtin_counts_match_a_python_loop_whatever_the_number_of_rows(terms, groups):
+    # The per-shard counts are padded to whole multiples of the episode rows; with fewer
+    # rows than counters they take several of them.
+    n_env, steps = 7, 40
+    rng = np.random.default_rng(terms * 10 + groups)
+    dones = rng.random((steps, n_env)) < 0.3
+    group = rng.integers(-1, groups + 1, (steps, n_env))  # some out of range
+    names = tuple(f"g{i}" for i in range(groups))
+    m = jm.Metrics(
+        terms={f"x{i}": (lambda s: s[0]) for i in range(terms)},
+        groups=jm.groups(lambda s: s[1].astype(jnp.int32), names) if groups else None,
+    )
+
+    @jax.jit
+    def run(state, xs, ds):
+        return jax.lax.scan(lambda s, x: (m.update(s, x[0], x[1]), None), state, (xs, ds))[0]
+
+    xs = np.stack([np.ones((steps, n_env)), group], axis=1).astype(np.float32)
+    host = m.to_host(m.compute(run(m.init(n_env), jnp.asarray(xs), jnp.asarray(dones))))
+    assert host["Counters/env_steps"] == steps * n_env
+    assert host["Counters/episodes"] == int(dones.sum())
+    if groups:
+        out = dones & ((group < 0) | (group >= groups))
+        assert host["Counters/ungrouped"] == int(out.sum()) > 0

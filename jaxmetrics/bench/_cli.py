@@ -103,6 +103,7 @@ QUICK = dataclasses.replace(
 def run(
     config: Config,
     hlo_dir: str | None = None,
+    profile: bool = False,
     on_table: Callable[[Table, list[Table]], None] | None = None,
 ) -> list[Table]:
     """Runs the configured scenarios and returns their tables, the targets table last.
@@ -120,7 +121,7 @@ def run(
 
     c = config
     if "isolated" in c.scenarios:
-        done(_isolated.isolated(c.num_envs, c.steps, c.repeats, hlo_dir))
+        done(*_isolated.isolated(c.num_envs, c.steps, c.repeats, hlo_dir, profile))
     if "scaling" in c.scenarios:
         done(
             *_isolated.scaling(
@@ -267,6 +268,11 @@ def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace
         help="where to write the JSON results (default: jaxmetrics_bench_<backend>.json)",
     )
     p.add_argument("--hlo-dir", default=None, help="write the compiled HLO of scenario 1 here")
+    p.add_argument(
+        "--profile",
+        action="store_true",
+        help="with the isolated scenario: device time per kernel of the floor and full spec",
+    )
     p.add_argument("--note", default=None, help="free text stored in the JSON (e.g. the tree)")
     for f in dataclasses.fields(Config):
         if f.name in lists:
@@ -314,6 +320,6 @@ def main(argv: Sequence[str] | None = None) -> list[Table]:
         print(table.to_markdown(), flush=True)
         write_json(path, env, cfg, so_far)  # partial results survive a killed run
 
-    tables = run(config, args.hlo_dir, on_table)
+    tables = run(config, args.hlo_dir, args.profile, on_table)
     print(f"wrote {path}", file=sys.stderr)
     return tables

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 
 from . import _workload as wl
 from ._hlo import loop_body_ops
+from ._profile import kernel_times
 from ._report import Table
 from ._timing import Variant, blocking, compile_jit, measure, tree_bytes
 
@@ -51,6 +52,7 @@ def _prepare(name: str, fn, state, xs, dones, hlo_dir: str | None) -> tuple[Vari
         with open(os.path.join(hlo_dir, f"{name}.hlo.txt"), "w") as f:
             f.write(text)
     info = {
+        "hlo": text,
         "compile_s": compile_s,
         "loop_ops": loop_body_ops(text),
         "state_bytes": tree_bytes(state),
@@ -73,8 +75,11 @@ ABLATION = (
 )
 
 
-def isolated(num_envs: int, steps: int, repeats: int, hlo_dir: str | None = None) -> Table:
-    """Scenario 1: `update` of the 10-term spec under a scan, against the floor."""
+def isolated(
+    num_envs: int, steps: int, repeats: int, hlo_dir: str | None = None, profile: bool = False
+) -> list[Table]:
+    """Scenario 1: `update` of the 10-term spec under a scan, against the floor; with
+    `profile`, also the device time of each kernel of the floor and the full spec."""
     t = Table(
         "isolated",
         f"Isolated update: {num_envs} envs x 10 terms, {steps}-step scan of random inputs",
@@ -122,6 +127,35 @@ def isolated(num_envs: int, steps: int, repeats: int, hlo_dir: str | None = None
     t.notes.append(
         f"Median of {repeats} interleaved repeats after one warm-up; spread (max-min)/median "
         "in the JSON. Ablation rows add one feature at a time to the simple-stats spec."
+    )
+    if not profile:
+        return [t]
+    by_name = {v.name: v for v in variants}
+    return [t, _kernel_table(num_envs, steps, {k: (by_name[k], infos[k]) for k in PROFILED})]
+
+
+PROFILED = ("floor", "full")
+
+
+def _kernel_table(num_envs: int, steps: int, profiled: dict) -> Table:
+    t = Table(
+        "kernels",
+        f"Device time per kernel and step: {num_envs} envs, {steps}-step scan (one profiled call)",
+        ["variant", "kernel", "us/step", "launches/step", "shape", "fuses"],
+    )
+    totals = {}
+    for name, (variant, info) in profiled.items():
+        kernels = kernel_times(variant.run, info["hlo"], steps)
+        totals[name] = sum(k.us_per_step for k in kernels)
+        for k in kernels:
+            t.add(name, k.name, k.us_per_step, k.launches_per_step, k.shape, k.ops)
+    t.data = {"total_us_per_step": totals}
+    t.notes.append(
+        "Summed device events per name over one call, divided by the steps (on a GPU the "
+        "kernels of its streams, on the CPU the thunks of XLA's client threads); `fuses` "
+        "lists the opcodes inside a fusion, most frequent first. Totals per step: "
+        + ", ".join(f"{k} {v:.1f} us" for k, v in totals.items())
+        + "."
     )
     return t
 
