@@ -26,7 +26,8 @@ _SHARD_COUNTERS = ("env_steps", "episodes", GROUP_COUNTER)
 # another layout is refused as another spec's instead of being misread. 2: running
 # episodes in three slots per env (`_episode.SLOTS`); EMA fields and window positions of
 # every stream row. 3: env steps counted per shard (`ended`); arrival steps per row.
-# 4: `ended` padded to whole multiples of the episode rows (`_stream.tally_width`).
+# 4: `ended` padded to whole multiples of the episode rows (`_stream.tally_width`); a
+# histogram's step counts kept (zero) in the state.
 STATE_LAYOUT = 4
 
 
