@@ -134,6 +134,10 @@ class StreamPlan:
         """Rows whose statistics depend on arrival order (EMA, windows)."""
         return tuple(sorted(set(self.ema_rows).union(*(g.rows for g in self.windows))))
 
+    def stream_rows(self, g: EmaGroup) -> tuple[int, ...]:
+        """The stream rows of EMA group `g` (its `rows` index the EMA rows)."""
+        return tuple(self.ema_rows[j] for j in g.rows)
+
     def ema_by_row(self, fill: float) -> tuple[np.ndarray, np.ndarray]:
         """Per stream row: whether it has an EMA, and its coefficient (`fill` if not)."""
         coeff = dict(zip(self.ema_rows, self.ema_coeffs))
@@ -334,19 +338,20 @@ def add_tallied(
         ema, ema_off, ema_w = _ema_update(plan, s, k, shift, mean, ema_sum)
         is_ema = plan.ema_by_row(0.0)[0]
         ema_n = ema_n + jnp.where(is_ema, jnp.minimum(k, _INT32_MAX - ema_n), 0)
-        ema_rings = tuple(
-            ring
-            if ring.buf.shape[1] == 0
-            else _ring_add(
-                ring,
-                _take(tuple(plan.ema_rows[j] for j in g.rows), s.steps),
-                _take(tuple(plan.ema_rows[j] for j in g.rows), values),
-                _take(tuple(plan.ema_rows[j] for j in g.rows), mask),
-                _take(tuple(at[plan.ema_rows[j]] for j in g.rows), after),
-                _take(g.rows, ek),
-            )
-            for g, ring in zip(plan.ema_groups, s.ema_rings)
-        )
+        rings = []
+        for g, ring in zip(plan.ema_groups, s.ema_rings):
+            if ring.buf.shape[1]:
+                own = plan.stream_rows(g)
+                ring = _ring_add(
+                    ring,
+                    _take(own, s.steps),
+                    _take(own, values),
+                    _take(own, mask),
+                    _take(tuple(at[r] for r in own), after),
+                    _take(g.rows, ek),
+                )
+            rings.append(ring)
+        ema_rings = tuple(rings)
     windows = []
     for g, w in zip(plan.windows, s.windows):
         ring = _ring_add(
@@ -746,7 +751,7 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
     parts, rings = [], []
     for g, ra, rb in zip(plan.ema_groups, a.ema_rings, b.ema_rings):
         size = ra.buf.shape[1]
-        own = tuple(plan.ema_rows[j] for j in g.rows)
+        own = plan.stream_rows(g)
         rows = jnp.asarray(own, jnp.int32)
         sa, sb = _take(own, a.steps), _take(own, b.steps)
         vals, age, valid = _union(ra, sa, rb, sb)

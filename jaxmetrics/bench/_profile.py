@@ -19,9 +19,7 @@ from typing import Any
 
 import jax
 
-from ._hlo import _CONTAINERS, _FREE, _opcode, _split_computations
-
-_CALLS = re.compile(r"\bcalls=%?([\w.\-]+)")
+from ._hlo import _CALLS, _CONTAINERS, _FREE, _opcode, _split_computations
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,9 +50,10 @@ def describe(hlo_text: str) -> dict[str, tuple[str, str]]:
             cut = rhs.find(f" {op}(")
             shape = re.sub(r"\{[^{}]*\}|/\*.*?\*/", "", rhs[:cut]).strip() if cut >= 0 else ""
             m = _CALLS.search(instr)
-            if op == "fusion" and m and m.group(1) in comps:
+            callee = m.group(1).replace("%", "").split(",")[0].strip() if m else None
+            if op == "fusion" and callee in comps:
                 inner = collections.Counter(
-                    o for o in map(_opcode, comps[m.group(1)]) if o not in _FREE
+                    o for o in map(_opcode, comps[callee]) if o not in _FREE
                 )
                 what = ", ".join(f"{o}x{n}" if n > 1 else o for o, n in inner.most_common(6))
             else:
