@@ -28,7 +28,7 @@ _SHARD_COUNTERS = ("env_steps", "episodes", GROUP_COUNTER)
 # every stream row. 3: env steps counted per shard (`ended`); arrival steps per row.
 # 4: `ended` padded to whole multiples of the episode rows (`_stream.tally_width`); a
 # histogram's step counts kept (zero) in the state.
-STATE_LAYOUT = 4
+STATE_LAYOUT = 5
 
 
 def _is_numeric(dtype) -> bool:
@@ -825,7 +825,7 @@ class Metrics:
             total = _count.merge(_count.total(ea), _count.total(eb))
             return jax.tree.map(lambda x: x[None], (one, total))
         width = max(
-            (r.buf.shape[-1] for f in (fa, fb) for r in f.ema_rings),  # type: ignore[union-attr]
+            (r.size for f in (fa, fb) for r in f.ema_rings),  # type: ignore[union-attr]
             default=0,
         )
         fa, fb = (_stream.pad_ema_history(f, width) for f in (fa, fb))  # type: ignore[arg-type]

@@ -250,3 +250,32 @@ def test_bad_layouts_are_refused_with_the_fix():
         ValueError, match=r"done must be a bool array of shape \(num_envs,\)=\(4,\)"
     ):
         METRICS.update(b, jnp.zeros((4, 6)), jnp.zeros(6, bool))
+
+
+def test_float64_state_keeps_window_and_ema_history_to_the_last_bit():
+    # A float64 value takes two words of a ring slot: values 1e-9 apart (below float32's
+    # resolution at 1e4) must come back whole from the windows, and from the EMA history
+    # that the shards' merge folds.
+    with jax.enable_x64(True):
+        metrics = jm.Metrics(
+            terms={"x": jm.Term(lambda x: x[0], reduce="max", stats=(jm.ema(0.5), jm.window(6)))},
+            dtype=jnp.float64,
+        )
+        mesh, env = mesh_of("4")
+        rng = np.random.default_rng(3)
+        xs = 1e4 + rng.integers(0, 1000, (12, 1, 16)) * 1e-9
+        dones = rng.random((12, 16)) < 0.4
+        sharding = NamedSharding(mesh, P(env))
+        got = jax.device_get(
+            jax.jit(lambda a, b, c: rollout(metrics, sharding, a, b, c))(
+                *place(mesh, env, jnp.asarray(xs), jnp.asarray(dones)),
+                jnp.zeros(12, bool),
+            )
+        )
+    ref = RefEpisodes(16, {"x": "max"}, ema_coeff=0.5, window=6)
+    for t in range(12):
+        ref.step({"x": xs[t, 0]}, dones[t])
+        want = ref.streams["x"].report()
+        wv = got["Episode_Metrics/x/window_values"][t]
+        np.testing.assert_array_equal(wv[~np.isnan(wv)], want["window_values"], err_msg=str(t))
+        np.testing.assert_allclose(got["Episode_Metrics/x/ema"][t], want["ema"], rtol=1e-15)
