@@ -241,3 +241,18 @@ def test_period_end_table_times_emit_and_history_on_the_same_records():
     # A record: F floats, 2K count words, 2 step words, 4 bytes each.
     assert rows["history"][5] % 4 == 0 and rows["history"][5] > 0
     assert rows["reset only"][3] is None and rows["history"][3] is not None
+
+
+def test_timed_rounds_rotate_so_no_variant_always_runs_first():
+    from jaxmetrics.bench._timing import Variant, measure
+
+    calls = []
+    variants = [Variant(n, lambda n=n: calls.append(n) or n) for n in "abc"]
+    timings, last = measure(variants, repeats=6, warmup=1)
+    rounds = [calls[3 + 3 * r : 6 + 3 * r] for r in range(6)]
+    assert calls[:3] == ["a", "b", "c"]  # the warm-up
+    assert all(sorted(r) == ["a", "b", "c"] for r in rounds)
+    # Every variant takes every place of a round equally often.
+    for place in range(3):
+        assert sorted(r[place] for r in rounds) == ["a", "a", "b", "b", "c", "c"]
+    assert {t.repeats for t in timings.values()} == {6} and last == {n: n for n in "abc"}

@@ -2,7 +2,10 @@
 
 Repeats are interleaved across the variants of one table (round r times every variant
 once before round r + 1 starts), so that slow drift of the machine (clocks, other
-processes) lands on every variant alike rather than on whichever ran last.
+processes) lands on every variant alike rather than on whichever ran last. Each round
+starts one variant later than the one before, so that no variant always runs first or
+always follows the same one (with a fixed order an H100 once read two identical rollout
+programs 0.67% apart, about the overhead being measured).
 """
 
 import dataclasses
@@ -60,8 +63,8 @@ def measure(
         for _ in range(warmup):
             last[v.name] = v.run()
     samples: dict[str, list[float]] = {v.name: [] for v in variants}
-    for _ in range(repeats):
-        for v in variants:
+    for r in range(repeats):
+        for v in rotated(variants, r):
             t0 = time.perf_counter()
             last[v.name] = v.run()
             samples[v.name].append(time.perf_counter() - t0)
@@ -69,6 +72,12 @@ def measure(
         name: Timing(statistics.median(s), min(s), max(s), len(s)) for name, s in samples.items()
     }
     return timings, last
+
+
+def rotated(items: Sequence[Any], r: int) -> list[Any]:
+    """`items` in round `r`'s order: starting at item `r` (mod their number), wrapping."""
+    k = r % len(items) if items else 0
+    return [*items[k:], *items[:k]]
 
 
 def tree_bytes(tree: Any) -> int:
