@@ -638,7 +638,7 @@ class Metrics:
         tally = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
 
         def fold(st, v, m, n, t, e):
-            return _stream.add_tallied(plan, st, v, m, n, t, e)
+            return _stream.add_tallied(plan, st, v, m, n, t, e, fused=shards == 1)
 
         args = (
             state.finished,

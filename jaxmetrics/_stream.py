@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _count, _sketch, _statistics
+from . import _count, _fused_ema, _sketch, _statistics
 from ._count import Count
 from ._layout import gathered
 from ._numerics import kahan_add
@@ -316,11 +316,14 @@ def add_tallied(
     nonfinite: jax.Array | None,
     tally: jax.Array,
     counts: Count,
+    fused: bool = False,
 ) -> tuple[StreamState, Count]:
     """`add`, and `counts` (`[tally_width(plan, C)]`) plus the sum of each row of
     `tally[C, B]` (int32), in its first C entries. The sums are taken in the batch's own
     reduction and added in the per-row fields' kernel, where separate counts would be
-    two more kernels."""
+    two more kernels. `fused` lets a CUDA GPU rank the batch and sum its EMA in one
+    kernel of our own (`_fused_ema`, where the batch fits it); the caller passes it only
+    for a batch that is not split over devices, which that kernel cannot be."""
     dt = plan.dtype
     width = counts.lo.shape[0]
     tally = jnp.pad(tally, ((0, width - tally.shape[0]), (0, 0)))
@@ -340,14 +343,20 @@ def add_tallied(
     # before the batch is reduced, so the EMA's weighted sum is one more operand of the
     # batch's reduction.
     ranked = _ranked(plan)
-    after, ranked_k = arrivals_after(_take(ranked, mask)) if ranked else (None, None)
     at = {row: i for i, row in enumerate(ranked)}
-    ema_in = None
-    if plan.ema_rows:
-        ema_in = _ema_operands(plan, s, values, mask, after, ranked_k, shift)
-    k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, tallies = _batch(
+    ema_in = ema_sum = None
+    if plan.ema_rows and fused and _fused_ema.fits(mask.shape[1], dt):
+        after, ranked_k, ema_sum = _ranks_and_ema(plan, s, values, mask, shift)
+    else:
+        after, ranked_k = arrivals_after(_take(ranked, mask)) if ranked else (None, None)
+        if plan.ema_rows:
+            off, seeding = _ema_offset(s, shift)
+            ema_in = _ema_operands(plan, values, mask, after, ranked_k, off, seeding)
+    k, bsum, bmin, bmax, mb, m2b, bad, batch_ema, tallies = _batch(
         values, mask, nonfinite, shift, wt, ema_in, tally
     )
+    if ema_in is not None:
+        ema_sum = batch_ema
 
     kf = k.astype(wt)
     na = _count.as_float(s.count, wt)
@@ -604,10 +613,18 @@ def _no_tally(values: jax.Array) -> jax.Array:
 _INT32_MAX = np.int32(np.iinfo(np.int32).max)
 
 
-def _ema_operands(plan: StreamPlan, s: StreamState, values, mask, after, k, shift):
+def _ema_offset(s: StreamState, shift: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Per row: the offset the batch's EMA deviations are taken from, and whether this
+    batch seeds the EMA (none seen yet)."""
+    seeded = s.ema_w > 0
+    return jnp.where(seeded, s.ema_off, shift), ~seeded
+
+
+def _ema_operands(plan: StreamPlan, values, mask, after, k, off, seeding):
     """The EMA's input to the batch's reduction, every row ([R, B]; zero rows where a
     row has no EMA): the deviations `x - off` weighed by their EMA weights. `after` and
-    `k` are every row's arrival ranks and counts (`arrivals_after`)."""
+    `k` are every row's arrival ranks and counts (`arrivals_after`); `off` and `seeding`
+    come from `_ema_offset`."""
     # Sequential EMA over the k arrivals in closed form: the value with `after` later
     # arrivals gets weight c(1-c)^after; the old EMA gets (1-c)^k. Unseeded, the first
     # arrival (after == k - 1) seeds it and weighs (1-c)^(k-1). The EMA is kept relative
@@ -616,10 +633,26 @@ def _ema_operands(plan: StreamPlan, s: StreamState, values, mask, after, k, shif
     dt = plan.dtype
     is_ema, coeff = plan.ema_by_row(0.0)
     c = jnp.asarray(coeff, dt)[:, None]
-    seeded = s.ema_w > 0
-    off = jnp.where(seeded, s.ema_off, shift)
     dev = jnp.where(mask & is_ema[:, None], values - off[:, None], 0)
-    return _ema_weights(c, after, ~seeded[:, None], k[:, None], dt) * dev
+    return _ema_weights(c, after, seeding[:, None], k[:, None], dt) * dev
+
+
+def _ranks_and_ema(plan: StreamPlan, s: StreamState, values, mask, shift):
+    """`arrivals_after` of every row and the sum of each row of `_ema_operands`: on a
+    CUDA GPU in one kernel (`_fused_ema`), elsewhere with jnp."""
+    coeff = jnp.asarray(plan.ema_by_row(0.0)[1], jnp.float32)
+
+    def kernel(v, m, w, eoff, sh):
+        return _fused_ema.ranks_and_ema(m, v, coeff, w, eoff, sh)
+
+    def reference(v, m, w, eoff, sh):
+        after, k = arrivals_after(m)
+        off, seeding = _ema_offset(s._replace(ema_w=w, ema_off=eoff), sh)
+        return after, k, jnp.sum(_ema_operands(plan, v, m, after, k, off, seeding), axis=1)
+
+    return jax.lax.platform_dependent(
+        values, mask, s.ema_w, s.ema_off, shift, cuda=kernel, default=reference
+    )
 
 
 def _ema_weights(c, after, seeding, count, dt):

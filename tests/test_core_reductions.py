@@ -358,3 +358,37 @@ def test_arrival_ranks_count_the_later_entries_of_each_row(rows):
         assert int(k[r]) == int(row.sum())
         for j in np.flatnonzero(row):
             assert int(after[r, j]) == int(row[j + 1 :].sum())
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(1, 3), st.integers(5, 8), st.integers(0, 2**32 - 1))
+def test_fused_rank_and_ema_kernel_matches_a_python_loop(rows, log_batch, seed):
+    # The CUDA kernel (`_fused_ema`), run in Pallas' interpret mode since CI has no GPU,
+    # against a float64 loop over each row in arrival order. Rows cover no EMA (c = 0),
+    # c = 1 (0^0 = 1), a seeding row and far-from-zero values.
+    from jaxmetrics import _fused_ema
+
+    rng = np.random.default_rng(seed)
+    batch = 2**log_batch
+    mask = rng.random((rows, batch)) < rng.choice([0.05, 0.5, 1.0])
+    values = (1e4 + rng.normal(size=(rows, batch))).astype(np.float32)
+    coeff = rng.choice([0.0, 0.01, 0.3, 1.0], rows).astype(np.float32)
+    ema_w = rng.choice([0.0, 1.0], rows).astype(np.float32)  # 0: unseeded
+    ema_off, shift = (1e4 + rng.normal(size=(2, rows))).astype(np.float32)
+    after, k, ema = jax.jit(_fused_ema.ranks_and_ema, static_argnames="interpret")(
+        *map(jnp.asarray, (mask, values, coeff, ema_w, ema_off, shift)), interpret=True
+    )
+    for r in range(rows):
+        idx = np.flatnonzero(mask[r])
+        assert int(k[r]) == len(idx)
+        c = float(coeff[r])
+        seeding = ema_w[r] == 0 and c > 0
+        off = float(ema_off[r] if ema_w[r] > 0 else shift[r])
+        want, scale = 0.0, 0.0
+        for n, j in enumerate(idx):
+            later = len(idx) - 1 - n
+            assert int(after[r, j]) == later
+            w = (1 - c) ** later * (1.0 if seeding and n == 0 else c)
+            want += w * (float(values[r, j]) - off)
+            scale += abs(w) * abs(float(values[r, j]) - off)
+        np.testing.assert_allclose(float(ema[r]), want, rtol=1e-5, atol=1e-6 * scale + 1e-30)

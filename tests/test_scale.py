@@ -279,3 +279,19 @@ def test_float64_state_keeps_window_and_ema_history_to_the_last_bit():
         wv = got["Episode_Metrics/x/window_values"][t]
         np.testing.assert_array_equal(wv[~np.isnan(wv)], want["window_values"], err_msg=str(t))
         np.testing.assert_allclose(got["Episode_Metrics/x/ema"][t], want["ema"], rtol=1e-15)
+
+
+def test_fused_kernel_serves_one_shard_and_never_a_state_split_over_shards():
+    # The CUDA kernel (`_fused_ema`) is a custom call XLA cannot partition: under a state
+    # split over devices it would gather every shard's batch each step. A one-shard state
+    # traces it (for CUDA; other platforms take the jnp branch), a sharded one never does.
+    mesh, env = mesh_of("4")
+
+    def traced(num_envs, sharding=None):
+        xs, dones = long_rollout(3, 1, num_envs, 0.3)
+        state = METRICS.init(num_envs, sharding=sharding)
+        return str(jax.make_jaxpr(METRICS.update)(state, xs[0], dones[0]))
+
+    assert "pallas_call" in traced(256)
+    assert "pallas_call" not in traced(256, NamedSharding(mesh, P(env)))
+    assert "pallas_call" not in traced(16)  # 16 envs: under the kernel's smallest block
