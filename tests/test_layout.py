@@ -23,6 +23,7 @@ PACKAGE = Path(jm.__file__).resolve().parent
 CORE = {
     "_count",
     "_episode",
+    "_fused_ema",
     "_layout",
     "_metrics",
     "_numerics",
