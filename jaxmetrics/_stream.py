@@ -350,7 +350,7 @@ def add_tallied(
     else:
         after, ranked_k = arrivals_after(_take(ranked, mask)) if ranked else (None, None)
         if plan.ema_rows:
-            off, seeding = _ema_offset(s, shift)
+            off, seeding = _ema_offset(s.ema_w, s.ema_off, shift)
             ema_in = _ema_operands(plan, values, mask, after, ranked_k, off, seeding)
     k, bsum, bmin, bmax, mb, m2b, bad, batch_ema, tallies = _batch(
         values, mask, nonfinite, shift, wt, ema_in, tally
@@ -613,11 +613,12 @@ def _no_tally(values: jax.Array) -> jax.Array:
 _INT32_MAX = np.int32(np.iinfo(np.int32).max)
 
 
-def _ema_offset(s: StreamState, shift: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Per row: the offset the batch's EMA deviations are taken from, and whether this
-    batch seeds the EMA (none seen yet)."""
-    seeded = s.ema_w > 0
-    return jnp.where(seeded, s.ema_off, shift), ~seeded
+def _ema_offset(ema_w, ema_off, shift) -> tuple[jax.Array, jax.Array]:
+    """Per row, from the state's `ema_w` and `ema_off` and the batch's `shift`: the offset
+    the batch's EMA deviations are taken from, and whether this batch seeds the EMA (none
+    seen yet)."""
+    seeded = ema_w > 0
+    return jnp.where(seeded, ema_off, shift), ~seeded
 
 
 def _ema_operands(plan: StreamPlan, values, mask, after, k, off, seeding):
@@ -647,7 +648,7 @@ def _ranks_and_ema(plan: StreamPlan, s: StreamState, values, mask, shift):
 
     def reference(v, m, w, eoff, sh):
         after, k = arrivals_after(m)
-        off, seeding = _ema_offset(s._replace(ema_w=w, ema_off=eoff), sh)
+        off, seeding = _ema_offset(w, eoff, sh)
         return after, k, jnp.sum(_ema_operands(plan, v, m, after, k, off, seeding), axis=1)
 
     return jax.lax.platform_dependent(
