@@ -27,7 +27,8 @@ _SHARD_COUNTERS = ("env_steps", "episodes", GROUP_COUNTER)
 # episodes in three slots per env (`_episode.SLOTS`); EMA fields and window positions of
 # every stream row. 3: env steps counted per shard (`ended`); arrival steps per row.
 # 4: `ended` padded to whole multiples of the episode rows (`_stream.tally_width`); a
-# histogram's step counts kept (zero) in the state.
+# histogram's step counts kept (zero) in the state. 5: a ring slot (windows, EMA history)
+# holds its value's bits and its arrival stamp in one `uint32` array (`_stream.Ring.data`).
 STATE_LAYOUT = 5
 
 
