@@ -317,13 +317,16 @@ def add_tallied(
     tally: jax.Array,
     counts: Count,
     fused: bool = False,
+    interpret: bool = False,
 ) -> tuple[StreamState, Count]:
     """`add`, and `counts` (`[tally_width(plan, C)]`) plus the sum of each row of
     `tally[C, B]` (int32), in its first C entries. The sums are taken in the batch's own
     reduction and added in the per-row fields' kernel, where separate counts would be
-    two more kernels. `fused` lets a CUDA GPU rank the batch and sum its EMA in one
-    kernel of our own (`_fused_ema`, where the batch fits it); the caller passes it only
-    for a batch that is not split over devices, which that kernel cannot be."""
+    two more kernels. `fused` lets a CUDA GPU fold the batch into the EMA, rings and
+    histograms in one kernel of our own (`_fused_ema`, where the batch fits it); the
+    caller passes it only for a batch that is not split over devices, which that kernel
+    cannot be. `interpret` (with `fused`) runs that kernel on any platform, in Pallas'
+    interpret mode (slow: for tests)."""
     dt = plan.dtype
     width = counts.lo.shape[0]
     tally = jnp.pad(tally, ((0, width - tally.shape[0]), (0, 0)))
@@ -342,16 +345,15 @@ def add_tallied(
     # many of the row's values arrive after each one (`k - 1 - rank`). It is known
     # before the batch is reduced, so the EMA's weighted sum is one more operand of the
     # batch's reduction.
-    ranked = _ranked(plan)
-    at = {row: i for i, row in enumerate(ranked)}
-    ema_in = ema_sum = None
-    if plan.ema_rows and fused and _fused_ema.fits(mask.shape[1], dt):
-        after, ranked_k, ema_sum = _ranks_and_ema(plan, s, values, mask, shift)
+    if (plan.ema_rows or plan.windows) and fused and _fused_ema.fits(mask.shape[1], dt):
+        ema_in = None
+        ema_sum, ema_data, window_data, hists, hist_steps = _fold_ordered_fused(
+            plan, s, values, mask, shift, interpret
+        )
     else:
-        after, ranked_k = arrivals_after(_take(ranked, mask)) if ranked else (None, None)
-        if plan.ema_rows:
-            off, seeding = _ema_offset(s.ema_w, s.ema_off, shift)
-            ema_in = _ema_operands(plan, values, mask, after, ranked_k, off, seeding)
+        ema_in, ema_data, window_data, hists, hist_steps = _fold_ordered(
+            plan, s, values, mask, shift
+        )
     k, bsum, bmin, bmax, mb, m2b, bad, batch_ema, tallies = _batch(
         values, mask, nonfinite, shift, wt, ema_in, tally
     )
@@ -383,41 +385,19 @@ def add_tallied(
         ema, ema_off, ema_w = _ema_update(plan, s, k, shift, mean, ema_sum)
         is_ema = plan.ema_by_row(0.0)[0]
         ema_n = ema_n + jnp.where(is_ema, jnp.minimum(k, _INT32_MAX - ema_n), 0)
-        rings = []
-        for g, ring in zip(plan.ema_groups, s.ema_rings):
-            if ring.size:
-                own = plan.stream_rows(g)
-                ring = _ring_add(
-                    ring,
-                    _take(own, s.steps),
-                    _take(own, values),
-                    _take(own, mask),
-                    _take(tuple(at[r] for r in own), after),
-                    _take(g.rows, ek),
-                )
-            rings.append(ring)
-        ema_rings = tuple(rings)
-    windows = []
-    for g, w in zip(plan.windows, s.windows):
-        ring = _ring_add(
-            _window(g, w),
-            _take(g.rows, s.steps),
-            _take(g.rows, values),
-            _take(g.rows, mask),
-            _take(tuple(at[r] for r in g.rows), after),
-            _take(g.rows, k),
+        ema_rings = tuple(
+            _advanced(ring._replace(data=data), _take(g.rows, ek)) if ring.size else ring
+            for g, ring, data in zip(plan.ema_groups, s.ema_rings, ema_data)
         )
+    windows = []
+    for g, w, data in zip(plan.windows, s.windows, window_data):
         # `pos` and `filled` of every row, elementwise in `k` (rows of other groups keep
         # theirs), not the group's [R_w] ones: that keeps them in the [R] update kernel.
         mine = np.isin(np.arange(len(plan.rows)), g.rows)
         stored = jnp.minimum(k, g.size)
         pos = jnp.where(mine, (w.pos + stored) % g.size, w.pos)
         filled = jnp.where(mine, jnp.minimum(w.filled + stored, g.size), w.filled)
-        windows.append(Ring(ring.data, pos, filled))
-    hists, hist_steps = _pairs(
-        _hist_add(g, h, z, _take(g.rows, values), _take(g.rows, mask), dt)
-        for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
-    )
+        windows.append(Ring(data, pos, filled))
     sketches = tuple(
         _sketch.add(c, _sketch.slot(g, _take(g.rows, values), _take(g.rows, mask)))
         for g, c in zip(plan.sketches, s.sketches)
@@ -638,24 +618,6 @@ def _ema_operands(plan: StreamPlan, values, mask, after, k, off, seeding):
     return _ema_weights(c, after, seeding[:, None], k[:, None], dt) * dev
 
 
-def _ranks_and_ema(plan: StreamPlan, s: StreamState, values, mask, shift):
-    """`arrivals_after` of every row and the sum of each row of `_ema_operands`: on a
-    CUDA GPU in one kernel (`_fused_ema`), elsewhere with jnp."""
-    coeff = jnp.asarray(plan.ema_by_row(0.0)[1], jnp.float32)
-
-    def kernel(v, m, w, eoff, sh):
-        return _fused_ema.ranks_and_ema(m, v, coeff, w, eoff, sh)
-
-    def reference(v, m, w, eoff, sh):
-        after, k = arrivals_after(m)
-        off, seeding = _ema_offset(w, eoff, sh)
-        return after, k, jnp.sum(_ema_operands(plan, v, m, after, k, off, seeding), axis=1)
-
-    return jax.lax.platform_dependent(
-        values, mask, s.ema_w, s.ema_off, shift, cuda=kernel, default=reference
-    )
-
-
 def _ema_weights(c, after, seeding, count, dt):
     """The closed-form EMA weights of values with `after` later arrivals: c(1-c)^after,
     except the first of `count` values where `seeding`, which seeds the EMA and weighs
@@ -686,8 +648,8 @@ def _ema_update(plan: StreamPlan, s: StreamState, k, shift, mean, new):
     return ema, ema_off, ema_w
 
 
-def _ring_add(w: Ring, step: jax.Array, values, mask, after, k) -> Ring:
-    """`w` with the batch's arrivals added; `step` is each ring row's arrival step."""
+def _ring_data(w: Ring, step: jax.Array, values, mask, after, k) -> jax.Array:
+    """`w.data` with the batch's arrivals added; `step` is each ring row's arrival step."""
     # Only the last `size` arrivals survive (those with fewer than `size` after them);
     # they go to consecutive ring slots in order: one scatter writes each value with
     # its stamp.
@@ -697,10 +659,90 @@ def _ring_add(w: Ring, step: jax.Array, values, mask, after, k) -> Ring:
     last = (w.pos + stored - 1)[:, None]
     slot = jnp.where(keep, (last - after) % n, n)  # n = out of bounds: dropped
     rows = jnp.broadcast_to(jnp.arange(values.shape[0], dtype=jnp.int32)[:, None], slot.shape)
-    data = w.data.at[rows, slot].set(
+    return w.data.at[rows, slot].set(
         _packed(values, jnp.broadcast_to(step[:, None], values.shape)), mode="drop"
     )
-    return Ring(data, (w.pos + stored) % n, jnp.minimum(w.filled + stored, n))
+
+
+def _advanced(w: Ring, k: jax.Array) -> Ring:
+    """`w` (its data already written) with `pos` and `filled` past `k` arrivals per row."""
+    stored = jnp.minimum(k, w.size)
+    return w._replace(pos=(w.pos + stored) % w.size, filled=jnp.minimum(w.filled + stored, w.size))
+
+
+def _fold_ordered(plan: StreamPlan, s: StreamState, values, mask, shift):
+    """What a batch adds that depends on arrival order, and its histograms, with jnp:
+    the EMA's operand of the batch's reduction (`_ema_operands`; None without EMA rows),
+    the data of each EMA ring and each window ring, and each histogram's counts with
+    its `hist_steps`."""
+    ranked = _ranked(plan)
+    at = {row: i for i, row in enumerate(ranked)}
+    after, k = arrivals_after(_take(ranked, mask)) if ranked else (None, None)
+    ema_in = None
+    if plan.ema_rows:
+        off, seeding = _ema_offset(s.ema_w, s.ema_off, shift)
+        ema_in = _ema_operands(plan, values, mask, after, k, off, seeding)
+
+    def ring(w: Ring, rows: tuple[int, ...]) -> jax.Array:
+        if not w.size:
+            return w.data
+        i = tuple(at[r] for r in rows)
+        rk = _take(i, k)
+        args = (_take(rows, s.steps), _take(rows, values), _take(rows, mask), _take(i, after))
+        return _ring_data(w, *args, rk)
+
+    ema_data = tuple(ring(w, plan.stream_rows(g)) for g, w in zip(plan.ema_groups, s.ema_rings))
+    window_data = tuple(ring(_window(g, w), g.rows) for g, w in zip(plan.windows, s.windows))
+    return ema_in, ema_data, window_data, *_hists_add(plan, s, values, mask)
+
+
+def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
+    """Each histogram's counts with the batch added, and its `hist_steps`."""
+    return _pairs(
+        _hist_add(g, h, z, _take(g.rows, values), _take(g.rows, mask), plan.dtype)
+        for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
+    )
+
+
+def _fold_ordered_fused(plan: StreamPlan, s: StreamState, values, mask, shift, interpret: bool):
+    """`_fold_ordered`, with the EMA's batch sum (`[R]`) in place of its operand: on a CUDA
+    GPU (or where `interpret`) the EMA and the rings in one kernel of our own
+    (`_fused_ema.fold`)."""
+    rows = len(plan.rows)
+
+    def where_of(members: tuple[int, ...]) -> np.ndarray:
+        out = np.full(rows, -1, np.int32)
+        out[list(members)] = np.arange(len(members), dtype=np.int32)
+        return out
+
+    def kernel(s, values, mask, shift):
+        rings = []
+        for g, r in zip(plan.ema_groups, s.ema_rings):
+            if r.size:
+                own = where_of(plan.stream_rows(g))
+                rings.append(_fused_ema.RingIn(r.data, r.pos, own, own))
+        for g, r in zip(plan.windows, s.windows):
+            mine = where_of(g.rows)  # the window's `pos` has every stream row
+            pos_row = np.where(mine >= 0, np.arange(rows), -1)
+            rings.append(_fused_ema.RingIn(r.data, r.pos, mine, pos_row))
+        ema = None
+        if plan.ema_rows:
+            coeff = plan.ema_by_row(0.0)[1]
+            ema = _fused_ema.EmaIn(coeff, s.ema_w, s.ema_off, shift)
+        ema_sum, data = _fused_ema.fold(mask, values, s.steps, ema, tuple(rings), interpret)
+        data = iter(data)
+        ema_data = tuple(next(data) if r.size else r.data for r in s.ema_rings)
+        hists, hist_steps = _hists_add(plan, s, values, mask)
+        return ema_sum, ema_data, tuple(data), hists, hist_steps
+
+    def reference(s, values, mask, shift):
+        ema_in, *rest = _fold_ordered(plan, s, values, mask, shift)
+        return None if ema_in is None else jnp.sum(ema_in, axis=1), *rest
+
+    args = (s, values, mask, shift)
+    if interpret:
+        return kernel(*args)
+    return jax.lax.platform_dependent(*args, cuda=kernel, default=reference)
 
 
 def _pairs(items) -> tuple[tuple, tuple]:

@@ -4,6 +4,7 @@ Values, `done` patterns and flush cadences are random (hypothesis); the report i
 after *every* step, under `jit` + `lax.scan`, with `reset_period` applied through `lax.cond`.
 """
 
+import functools
 import math
 
 import jax
@@ -361,34 +362,100 @@ def test_arrival_ranks_count_the_later_entries_of_each_row(rows):
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.integers(1, 3), st.integers(5, 8), st.integers(0, 2**32 - 1))
-def test_fused_rank_and_ema_kernel_matches_a_python_loop(rows, log_batch, seed):
+@given(st.integers(1, 4), st.integers(5, 8), st.sampled_from([1, 5, 16]), st.integers(0, 2**32 - 1))
+def test_fused_kernel_matches_a_python_loop(rows, log_batch, size, seed):
     # The CUDA kernel (`_fused_ema`), run in Pallas' interpret mode since CI has no GPU,
-    # against a float64 loop over each row in arrival order. Rows cover no EMA (c = 0),
-    # c = 1 (0^0 = 1), a seeding row and far-from-zero values.
+    # against a float64 loop over each row in arrival order: the EMA's weighted sum and a
+    # ring written one arrival at a time. Rows cover no EMA (c = 0), c = 1 (0^0 = 1), a
+    # seeding row, far-from-zero values, and rows in and out of the ring.
     from jaxmetrics import _fused_ema
 
     rng = np.random.default_rng(seed)
     batch = 2**log_batch
-    mask = rng.random((rows, batch)) < rng.choice([0.05, 0.5, 1.0])
+    mask = rng.random((rows, batch)) < rng.choice([0.02, 0.5, 1.0])
     values = (1e4 + rng.normal(size=(rows, batch))).astype(np.float32)
     coeff = rng.choice([0.0, 0.01, 0.3, 1.0], rows).astype(np.float32)
     ema_w = rng.choice([0.0, 1.0], rows).astype(np.float32)  # 0: unseeded
     ema_off, shift = (1e4 + rng.normal(size=(2, rows))).astype(np.float32)
-    after, k, ema = jax.jit(_fused_ema.ranks_and_ema, static_argnames="interpret")(
-        *map(jnp.asarray, (mask, values, coeff, ema_w, ema_off, shift)), interpret=True
-    )
+    steps = rng.integers(0, 2**32, rows, dtype=np.uint32)
+    # A ring of the rows drawn into it, in random order; its `pos` indexed by stream row.
+    # The ring keeps a row's newest `size` arrivals, the oldest of them at `pos`.
+    members = [r for r in range(rows) if rng.random() < 0.7] or [rows - 1]
+    ring_row = np.full(rows, -1, np.int32)
+    ring_row[members] = rng.permutation(len(members))
+    data = rng.integers(0, 2**32, (len(members), size, 2), dtype=np.uint32)
+    pos = rng.integers(0, size, rows).astype(np.int32)
+
+    def fold(m, v, t, w, o, sh, d, p):
+        ema = _fused_ema.EmaIn(coeff, w, o, sh)
+        ring = _fused_ema.RingIn(d, p, ring_row, np.arange(rows))
+        return _fused_ema.fold(m, v, t, ema, (ring,), interpret=True)
+
+    args = (mask, values, steps, ema_w, ema_off, shift, data, pos)
+    ema_sum, (got,) = jax.jit(fold)(*map(jnp.asarray, args))
+
+    want_ring = data.copy()
     for r in range(rows):
         idx = np.flatnonzero(mask[r])
-        assert int(k[r]) == len(idx)
         c = float(coeff[r])
         seeding = ema_w[r] == 0 and c > 0
         off = float(ema_off[r] if ema_w[r] > 0 else shift[r])
         want, scale = 0.0, 0.0
+        p = int(pos[r])
         for n, j in enumerate(idx):
             later = len(idx) - 1 - n
-            assert int(after[r, j]) == later
             w = (1 - c) ** later * (1.0 if seeding and n == 0 else c)
             want += w * (float(values[r, j]) - off)
             scale += abs(w) * abs(float(values[r, j]) - off)
-        np.testing.assert_allclose(float(ema[r]), want, rtol=1e-5, atol=1e-6 * scale + 1e-30)
+            if ring_row[r] >= 0 and later < size:
+                want_ring[ring_row[r], p] = (values[r, j : j + 1].view(np.uint32)[0], steps[r])
+                p = (p + 1) % size
+        np.testing.assert_allclose(
+            float(ema_sum[r]), want, rtol=1e-5, atol=1e-6 * scale + 1e-30, err_msg=str(r)
+        )
+    np.testing.assert_array_equal(np.asarray(got), want_ring)
+
+
+def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch):
+    # The whole update with the kernel (interpret mode) against the jnp path that CPUs and
+    # sharded states take: every state leaf equal, bit for bit (the EMA to a few ulps),
+    # over a rollout with episodes ending, non-finite values, two EMAs, two window sizes
+    # and a histogram.
+    from jaxmetrics import _stream
+
+    stats = {
+        "a": ("mean", jm.ema(0.05), jm.window(7)),
+        "b": ("std", jm.ema(0.5), jm.window(3, percentiles=(50,))),
+        "c": ("max", jm.histogram(5, (-1.0, 1.0)), jm.window(7)),
+        "d": ("min",),
+    }
+    metrics = jm.Metrics(
+        terms={
+            k: jm.Term(lambda x, i: x[i], reduce="mean", stats=v, params={"i": i})
+            for i, (k, v) in enumerate(stats.items())
+        }
+    )
+    rng = np.random.default_rng(7)
+    xs = rng.normal(size=(30, 4, 64)).astype(np.float32)
+    xs[3, 0, :5], xs[5, 2, 7], xs[8, 1, 9] = np.nan, np.inf, -np.inf
+    dones = rng.random((30, 64)) < 0.3
+
+    def run():
+        def body(s, inp):
+            return metrics.update(s, inp[0], inp[1]), None
+
+        scan = jax.jit(lambda s, x, d: jax.lax.scan(body, s, (x, d))[0])
+        return jax.device_get(scan(metrics.init(64), jnp.asarray(xs), jnp.asarray(dones)))
+
+    plain = run()
+    fold = _stream.add_tallied
+    monkeypatch.setattr(_stream, "add_tallied", functools.partial(fold, interpret=True))
+    state = metrics.init(64)
+    assert "pallas_call" in str(jax.make_jaxpr(metrics.update)(state, xs[0], dones[0]))
+    fused = run()
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(plain), jax.tree.leaves(fused)):
+        where = jax.tree_util.keystr(path)
+        if where == ".finished.ema":  # (1-c)^n by exp2 in the kernel: a few ulps apart
+            np.testing.assert_allclose(a, b, rtol=4e-7, atol=0, err_msg=where)
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=where)
