@@ -54,21 +54,43 @@ class EmaIn(NamedTuple):
     shift: jax.Array
 
 
-def _kernel(*refs, ema: bool, rings: tuple[int, ...]):
-    """One batch row; `rings` are the ring sizes. `table` holds the row's static ints:
-    the EMA coefficient's bits, then each ring's `row` and `pos_row`."""
-    m_ref, x_ref, step_ref, table, *refs = refs
+def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int):
+    """One batch row; `rings` are the ring sizes, `packs` the tally arrays. `table` holds
+    the row's static ints: the EMA coefficient's bits, then each ring's `row` and
+    `pos_row`."""
+    m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
+    tally_refs, refs = refs[:packs], refs[packs:]
     if ema:
-        w_ref, eoff_ref, shift_ref, *refs = refs
+        w_ref, eoff_ref, *refs = refs
     ring_in, refs = refs[: 2 * len(rings)], refs[2 * len(rings) :]
-    if ema:
-        ema_ref, *refs = refs
+    floats, ints, *refs = refs
 
     m = m_ref[...].astype(jnp.int32)  # [1, B]
     on = m != 0
     x = x_ref[...]
     total = jnp.sum(m, axis=1, keepdims=True)
     after = total - jnp.cumsum(m, axis=1)
+
+    # The batch's statistics. The row is in registers, so the moments take two passes:
+    # deviations from `shift`, then from their rounded mean `p`, corrected by the mean
+    # of the second deviations (exact for any `p`; accurate for one near the mean, as a
+    # float32 sum of values far from zero gives).
+    zero = jnp.zeros_like(x)
+    k = jnp.maximum(total, 1).astype(jnp.float32)
+    d = jnp.where(on, x - shift_ref[...], zero)
+    p = jnp.sum(d, axis=1, keepdims=True) / k
+    e = jnp.where(on, d - p, zero)
+    s1 = jnp.sum(e, axis=1, keepdims=True)
+    floats[:, 0:1] = jnp.sum(jnp.where(on, x, zero), axis=1, keepdims=True)
+    floats[:, 1:2] = jnp.min(jnp.where(on, x, jnp.inf), axis=1, keepdims=True)
+    floats[:, 2:3] = jnp.max(jnp.where(on, x, -jnp.inf), axis=1, keepdims=True)
+    floats[:, 3:4] = p + s1 / k
+    floats[:, 4:5] = jnp.maximum(jnp.sum(e * e, axis=1, keepdims=True) - s1 * s1 / k, 0)
+    ints[:, 0:1] = total
+    ints[:, 1:2] = jnp.sum(bad_ref[...], axis=1, keepdims=True)
+    for p, t in enumerate(tally_refs):
+        ints[:, 2 + p : 3 + p] = jnp.sum(t[...], axis=1, keepdims=True)
+
     if ema:
         c = jax.lax.bitcast_convert_type(table[:, 0:1], jnp.float32)  # [1, 1]
         # (1-c)^after; 0^0 = 1 for c = 1, as jnp.power gives.
@@ -82,7 +104,7 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...]):
         first = ~seeded & (c > 0) & (after == total - 1)
         weight = jnp.where(first, decay, c * decay)
         dev = jnp.where(on, x - off, 0.0)
-        ema_ref[...] = jnp.sum(weight * dev, axis=1, keepdims=True)
+        floats[:, 5:6] = jnp.sum(weight * dev, axis=1, keepdims=True)
 
     # Only the last `size` arrivals go in, to consecutive slots in arrival order. The
     # rings are aliased to their outputs: what this row does not write stays. Entries
@@ -101,23 +123,46 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...]):
         plt.store(out.at[rows, slot, jnp.ones_like(slot)], stamp, mask=keep)
 
 
+class Batch(NamedTuple):
+    """Per row of a batch (`[R]`): its count, sum, min and max (+-inf when empty), the mean
+    of its deviations from `shift` and their sum of squares around that mean, the sum of
+    its `nonfinite` flags, and with an EMA its weighted sum (else None); and `tallies`,
+    the sums of the tally rows (`[C]`)."""
+
+    count: jax.Array
+    sum: jax.Array
+    min: jax.Array
+    max: jax.Array
+    mean_dev: jax.Array
+    m2: jax.Array
+    nonfinite: jax.Array
+    ema: jax.Array | None
+    tallies: jax.Array
+
+
 def fold(
     mask: jax.Array,
     values: jax.Array,
+    nonfinite: jax.Array,
+    shift: jax.Array,
     steps: jax.Array,
+    tally: jax.Array,
     ema: EmaIn | None = None,
     rings: tuple[RingIn, ...] = (),
     interpret: bool = False,
-) -> tuple[jax.Array | None, tuple[jax.Array, ...]]:
-    """Folds a batch `values[R, B]` (float32) where `mask` (bool) into the EMA and the
-    rings. Returns: per row, `sum c(1-c)^after (x - off)` over its masked-in entries
-    (`[R]`; None without `ema`), with `after` how many masked-in entries follow each
-    one; and each ring's data with its rows' newest arrivals written in, stamped with
-    the row's `steps[r]` (uint32).
+) -> tuple[Batch, tuple[jax.Array, ...]]:
+    """Folds a batch `values[R, B]` (float32) where `mask` (bool): its statistics
+    (`Batch`; `nonfinite[R, B]` int32 flags, `shift[R]` float32, `tally[C, B]` int32 with
+    C a multiple of R: as arrays shaped like the batch, XLA writes them in the same
+    kernel as the batch, where a `[C, B]` of its own is one more kernel per step), and
+    each ring's data with its rows' newest arrivals written in, stamped with the row's
+    `steps[r]` (uint32).
 
-    With `ema`: `off` is `ema_off` for a seeded row (`ema_w > 0`), else `shift`, and the
-    first arrival of an unseeded EMA row seeds it, weighing `(1-c)^after` instead.
-    `interpret` runs it anywhere, slowly (Pallas' interpret mode).
+    The EMA's weighted sum is `sum c(1-c)^after (x - off)` over the row's masked-in
+    entries, with `after` how many masked-in entries follow each one; `off` is `ema_off`
+    for a seeded row (`ema_w > 0`), else `shift`, and the first arrival of an unseeded
+    EMA row seeds it, weighing `(1-c)^after` instead. `interpret` runs it anywhere,
+    slowly (Pallas' interpret mode).
     """
     rows, batch = mask.shape
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
@@ -126,6 +171,7 @@ def fold(
         table += [np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)]
     table = np.stack(table, axis=1)
     table = np.pad(table, ((0, 0), (0, pl.next_power_of_2(table.shape[1]) - table.shape[1])))
+    packs = tally.shape[0] // rows
 
     def whole(a):
         return pl.BlockSpec(a.shape, lambda i: (0,) * a.ndim)
@@ -133,34 +179,52 @@ def fold(
     def col(a):
         return a.reshape(rows, 1)
 
-    line = pl.BlockSpec((1, batch), lambda i: (i, 0))
-    one = pl.BlockSpec((1, 1), lambda i: (i, 0))
+    def cols(n):
+        return pl.BlockSpec((1, n), lambda i: (i, 0))
+
+    line = cols(batch)
+    one = cols(1)
     args = [
         (mask, line),
         (values, line),
+        (nonfinite, line),
+        (col(shift), one),
         (col(steps.astype(jnp.uint32)), one),
-        (jnp.asarray(table), pl.BlockSpec((1, table.shape[1]), lambda i: (i, 0))),
+        (jnp.asarray(table), cols(table.shape[1])),
     ]
+    args += [(tally[p * rows : (p + 1) * rows], line) for p in range(packs)]
     if ema is not None:
-        args += [(col(a), one) for a in (ema.ema_w, ema.ema_off, ema.shift)]
+        args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
     first_ring = len(args)
     for r in rings:
         args += [(r.data, whole(r.data)), (r.pos, whole(r.pos))]
-    outs = [(jax.ShapeDtypeStruct((rows, 1), jnp.float32), one)] if ema is not None else []
+    n_int = pl.next_power_of_2(2 + packs)
+    outs = [
+        (jax.ShapeDtypeStruct((rows, 8), jnp.float32), cols(8)),
+        (jax.ShapeDtypeStruct((rows, n_int), jnp.int32), cols(n_int)),
+    ]
     outs += [(jax.ShapeDtypeStruct(r.data.shape, r.data.dtype), whole(r.data)) for r in rings]
-    out = pl.pallas_call(
-        functools.partial(
-            _kernel, ema=ema is not None, rings=tuple(r.data.shape[1] for r in rings)
-        ),
+    kernel = functools.partial(
+        _kernel,
+        ema=ema is not None,
+        rings=tuple(r.data.shape[1] for r in rings),
+        packs=packs,
+    )
+    floats, ints, *data = pl.pallas_call(
+        kernel,
         out_shape=tuple(s for s, _ in outs),
         grid=(rows,),
         in_specs=[s for _, s in args],
         out_specs=tuple(s for _, s in outs),
-        input_output_aliases={
-            first_ring + 2 * i: len(outs) - len(rings) + i for i in range(len(rings))
-        },
+        input_output_aliases={first_ring + 2 * i: 2 + i for i in range(len(rings))},
         interpret=interpret,
         compiler_params=None if interpret else plt.CompilerParams(num_warps=8),
     )(*(a for a, _ in args))
-    ema_sum = out[0][:, 0] if ema is not None else None
-    return ema_sum, tuple(out[len(out) - len(rings) :])
+    stats = Batch(
+        ints[:, 0],
+        *(floats[:, i] for i in range(5)),
+        ints[:, 1],
+        floats[:, 5] if ema is not None else None,
+        ints[:, 2 : 2 + packs].T.reshape(-1),
+    )
+    return stats, tuple(data)

@@ -329,7 +329,6 @@ def add_tallied(
     interpret mode (slow: for tests)."""
     dt = plan.dtype
     width = counts.lo.shape[0]
-    tally = jnp.pad(tally, ((0, width - tally.shape[0]), (0, 0)))
     wt = _weight_dtype(dt)
     # Deviations from the running mean keep the moments small, so float32 stays accurate
     # for data far from zero. An empty period's mean is 0 (init, reset_period and merge
@@ -341,24 +340,14 @@ def add_tallied(
         nonfinite = jnp.zeros(values.shape, jnp.int32)
     if plan.ema_rows or plan.windows or plan.hists or plan.sketches:
         values, mask = gathered(values), gathered(mask)
-    # One arrival rank shared by every row that needs one (EMA and window rows): how
-    # many of the row's values arrive after each one (`k - 1 - rank`). It is known
-    # before the batch is reduced, so the EMA's weighted sum is one more operand of the
-    # batch's reduction.
+    tally = jnp.pad(tally, ((0, width - tally.shape[0]), (0, 0)))
+    args = (plan, s, values, mask, nonfinite, shift, tally)
     if (plan.ema_rows or plan.windows) and fused and _fused_ema.fits(mask.shape[1], dt):
-        ema_in = None
-        ema_sum, ema_data, window_data, hists, hist_steps = _fold_ordered_fused(
-            plan, s, values, mask, shift, interpret
-        )
+        folded = _fold_fused(*args, interpret)
     else:
-        ema_in, ema_data, window_data, hists, hist_steps = _fold_ordered(
-            plan, s, values, mask, shift
-        )
-    k, bsum, bmin, bmax, mb, m2b, bad, batch_ema, tallies = _batch(
-        values, mask, nonfinite, shift, wt, ema_in, tally
-    )
-    if ema_in is not None:
-        ema_sum = batch_ema
+        folded = _fold(*args)
+    (k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, tallies), *ordered = folded
+    ema_data, window_data, hists, hist_steps = ordered
 
     kf = k.astype(wt)
     na = _count.as_float(s.count, wt)
@@ -670,11 +659,14 @@ def _advanced(w: Ring, k: jax.Array) -> Ring:
     return w._replace(pos=(w.pos + stored) % w.size, filled=jnp.minimum(w.filled + stored, w.size))
 
 
-def _fold_ordered(plan: StreamPlan, s: StreamState, values, mask, shift):
-    """What a batch adds that depends on arrival order, and its histograms, with jnp:
-    the EMA's operand of the batch's reduction (`_ema_operands`; None without EMA rows),
-    the data of each EMA ring and each window ring, and each histogram's counts with
-    its `hist_steps`."""
+def _fold(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, tally):
+    """The batch's statistics (`_fused_ema.Batch`), and what it adds that depends on
+    arrival order, and its histograms: the data of each EMA ring and each window ring, and
+    each histogram's counts with its `hist_steps`. `tally` has `tally_width` rows."""
+    # One arrival rank shared by every row that needs one (EMA and window rows): how
+    # many of the row's values arrive after each one (`k - 1 - rank`). It is known
+    # before the batch is reduced, so the EMA's weighted sum is one more operand of the
+    # batch's reduction.
     ranked = _ranked(plan)
     at = {row: i for i, row in enumerate(ranked)}
     after, k = arrivals_after(_take(ranked, mask)) if ranked else (None, None)
@@ -693,7 +685,10 @@ def _fold_ordered(plan: StreamPlan, s: StreamState, values, mask, shift):
 
     ema_data = tuple(ring(w, plan.stream_rows(g)) for g, w in zip(plan.ema_groups, s.ema_rings))
     window_data = tuple(ring(_window(g, w), g.rows) for g, w in zip(plan.windows, s.windows))
-    return ema_in, ema_data, window_data, *_hists_add(plan, s, values, mask)
+    stats = _fused_ema.Batch(
+        *_batch(values, mask, nonfinite, shift, _weight_dtype(plan.dtype), ema_in, tally)
+    )
+    return stats, ema_data, window_data, *_hists_add(plan, s, values, mask)
 
 
 def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
@@ -704,10 +699,9 @@ def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
     )
 
 
-def _fold_ordered_fused(plan: StreamPlan, s: StreamState, values, mask, shift, interpret: bool):
-    """`_fold_ordered`, with the EMA's batch sum (`[R]`) in place of its operand: on a CUDA
-    GPU (or where `interpret`) the EMA and the rings in one kernel of our own
-    (`_fused_ema.fold`)."""
+def _fold_fused(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, tally, interpret):
+    """`_fold` on a CUDA GPU (or where `interpret`): the batch's statistics, the EMA and
+    the rings in one kernel of our own (`_fused_ema.fold`); elsewhere `_fold` itself."""
     rows = len(plan.rows)
 
     def where_of(members: tuple[int, ...]) -> np.ndarray:
@@ -715,7 +709,7 @@ def _fold_ordered_fused(plan: StreamPlan, s: StreamState, values, mask, shift, i
         out[list(members)] = np.arange(len(members), dtype=np.int32)
         return out
 
-    def kernel(s, values, mask, shift):
+    def kernel(s, values, mask, nonfinite, shift, tally):
         rings = []
         for g, r in zip(plan.ema_groups, s.ema_rings):
             if r.size:
@@ -727,19 +721,18 @@ def _fold_ordered_fused(plan: StreamPlan, s: StreamState, values, mask, shift, i
             rings.append(_fused_ema.RingIn(r.data, r.pos, mine, pos_row))
         ema = None
         if plan.ema_rows:
-            coeff = plan.ema_by_row(0.0)[1]
-            ema = _fused_ema.EmaIn(coeff, s.ema_w, s.ema_off, shift)
-        ema_sum, data = _fused_ema.fold(mask, values, s.steps, ema, tuple(rings), interpret)
+            ema = _fused_ema.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off, shift)
+        stats, data = _fused_ema.fold(
+            mask, values, nonfinite, shift, s.steps, tally, ema, tuple(rings), interpret
+        )
         data = iter(data)
         ema_data = tuple(next(data) if r.size else r.data for r in s.ema_rings)
-        hists, hist_steps = _hists_add(plan, s, values, mask)
-        return ema_sum, ema_data, tuple(data), hists, hist_steps
+        return stats, ema_data, tuple(data), *_hists_add(plan, s, values, mask)
 
-    def reference(s, values, mask, shift):
-        ema_in, *rest = _fold_ordered(plan, s, values, mask, shift)
-        return None if ema_in is None else jnp.sum(ema_in, axis=1), *rest
+    def reference(s, values, mask, nonfinite, shift, tally):
+        return _fold(plan, s, values, mask, nonfinite, shift, tally)
 
-    args = (s, values, mask, shift)
+    args = (s, values, mask, nonfinite, shift, tally)
     if interpret:
         return kernel(*args)
     return jax.lax.platform_dependent(*args, cuda=kernel, default=reference)
