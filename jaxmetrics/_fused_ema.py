@@ -1,13 +1,16 @@
-"""A batch's arrival-ordered statistics in one GPU kernel (Pallas, Triton): arrival
-ranks, the EMA's weighted sum and the ring inserts.
+"""A batch's fold in one GPU kernel (Pallas, Triton): its statistics, arrival ranks, the
+EMA's weighted sum and the ring writes.
 
-`_stream.add` needs, per row of a batch `[R, B]`, how many masked-in entries arrive after
-each one (`after`), then the EMA's weighted sum of the batch and the newest values written
-to their ring slots (windows, EMA history). XLA does that in four kernels (the mask packed
-into words, the later words' counts, the weighted deviations, the ring scatter). One Triton
-program per row does it all: a cumulative sum of the row's mask gives the ranks, the
-weighted sum follows, and the ring slots are written in place (the rings are aliased to
-the outputs; other rows never touch a row's slots).
+`_stream.add` needs, per row of a batch `[R, B]`: the count, sum, min, max and moments of the
+row's masked-in values, its non-finite flags and tallies summed, how many masked-in entries
+arrive after each one (`after`), the EMA's weighted sum of the batch, and the newest values
+written to their ring slots (windows, EMA history). XLA does that in five kernels (the
+batch's reduction, the mask packed into words, the later words' counts, the weighted
+deviations, the ring scatter). One Triton program per row does it all: the row is loaded
+once, a cumulative sum of its mask gives the ranks, the reductions and the weighted sum
+follow, and the ring slots are written in place (the rings are aliased to the outputs;
+other rows never touch a row's slots). On an H100 (full spec of the isolated bench, 4096
+envs) that is 6 kernels per step where XLA's path has 10: 15.7 against 18.2 us in one run.
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
