@@ -322,11 +322,12 @@ def add_tallied(
     """`add`, and `counts` (`[tally_width(plan, C)]`) plus the sum of each row of
     `tally[C, B]` (int32), in its first C entries. The sums are taken in the batch's own
     reduction and added in the per-row fields' kernel, where separate counts would be
-    two more kernels. `fused` lets a CUDA GPU fold the batch into the EMA, rings and
-    histograms in one kernel of our own (`_fused_ema`, where the batch fits it); the
-    caller passes it only for a batch that is not split over devices, which that kernel
-    cannot be. `interpret` (with `fused`) runs that kernel on any platform, in Pallas'
-    interpret mode (slow: for tests)."""
+    two more kernels. `fused` lets a CUDA GPU fold the batch (its reduction, arrival
+    ranks, EMA sum and ring writes) in one kernel of our own (`_fused_ema`, where the
+    spec has an EMA or a window and the batch fits it; histograms and sketches keep
+    XLA's kernels); the caller passes it only for a batch that is not split over
+    devices, which that kernel cannot be. `interpret` (with `fused`) runs that kernel on
+    any platform, in Pallas' interpret mode (slow: for tests)."""
     dt = plan.dtype
     width = counts.lo.shape[0]
     wt = _weight_dtype(dt)
