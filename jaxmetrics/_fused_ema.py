@@ -48,13 +48,12 @@ class RingIn(NamedTuple):
 
 
 class EmaIn(NamedTuple):
-    """Per batch row: the EMA's coefficient `coeff` (0: no EMA) and the state's `ema_w`,
-    `ema_off` and the batch's `shift` (float32)."""
+    """Per batch row: the EMA's coefficient `coeff` (0: no EMA) and the state's `ema_w` and
+    `ema_off` (float32)."""
 
     coeff: np.ndarray
     ema_w: jax.Array
     ema_off: jax.Array
-    shift: jax.Array
 
 
 def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int):
@@ -91,8 +90,8 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int):
     floats[:, 4:5] = jnp.maximum(jnp.sum(e * e, axis=1, keepdims=True) - s1 * s1 / k, 0)
     ints[:, 0:1] = total
     ints[:, 1:2] = jnp.sum(bad_ref[...], axis=1, keepdims=True)
-    for p, t in enumerate(tally_refs):
-        ints[:, 2 + p : 3 + p] = jnp.sum(t[...], axis=1, keepdims=True)
+    for j, t in enumerate(tally_refs):
+        ints[:, 2 + j : 3 + j] = jnp.sum(t[...], axis=1, keepdims=True)
 
     if ema:
         c = jax.lax.bitcast_convert_type(table[:, 0:1], jnp.float32)  # [1, 1]

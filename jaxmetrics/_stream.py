@@ -347,8 +347,8 @@ def add_tallied(
         folded = _fold_fused(*args, interpret)
     else:
         folded = _fold(*args)
-    (k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, tallies), *ordered = folded
-    ema_data, window_data, hists, hist_steps = ordered
+    stats, ema_data, window_data, hists, hist_steps = folded
+    k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, tallies = stats
 
     kf = k.astype(wt)
     na = _count.as_float(s.count, wt)
@@ -384,9 +384,9 @@ def add_tallied(
         # `pos` and `filled` of every row, elementwise in `k` (rows of other groups keep
         # theirs), not the group's [R_w] ones: that keeps them in the [R] update kernel.
         mine = np.isin(np.arange(len(plan.rows)), g.rows)
-        stored = jnp.minimum(k, g.size)
-        pos = jnp.where(mine, (w.pos + stored) % g.size, w.pos)
-        filled = jnp.where(mine, jnp.minimum(w.filled + stored, g.size), w.filled)
+        moved = _advanced(w, k)
+        pos = jnp.where(mine, moved.pos, w.pos)
+        filled = jnp.where(mine, moved.filled, w.filled)
         windows.append(Ring(data, pos, filled))
     sketches = tuple(
         _sketch.add(c, _sketch.slot(g, _take(g.rows, values), _take(g.rows, mask)))
@@ -622,12 +622,12 @@ def _ema_update(plan: StreamPlan, s: StreamState, k, shift, mean, new):
     dt = plan.dtype
     is_ema, coeff = plan.ema_by_row(1.0)
     c_all = jnp.asarray(coeff, dt)
-    seeded = s.ema_w > 0
     # The deviations were taken off `base`, known before the batch. A seeding batch's
     # weights sum to 1, so its EMA moves to the offset fixed now, the period's mean as of
     # this batch, by adding `base - off`: the rounding of that first batch then decays
     # like any value, where an offset of `base` (0 for a row never seen) would stay.
-    base = jnp.where(seeded, s.ema_off, shift)
+    base, seeding = _ema_offset(s.ema_w, s.ema_off, shift)
+    seeded = ~seeding
     off = jnp.where(seeded, s.ema_off, mean)
     keep = jnp.power(1 - c_all, k.astype(dt))
     ema = jnp.where(seeded, keep * s.ema, 0) + new + (base - off)
@@ -722,7 +722,7 @@ def _fold_fused(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift
             rings.append(_fused_ema.RingIn(r.data, r.pos, mine, pos_row))
         ema = None
         if plan.ema_rows:
-            ema = _fused_ema.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off, shift)
+            ema = _fused_ema.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off)
         stats, data = _fused_ema.fold(
             mask, values, nonfinite, shift, s.steps, tally, ema, tuple(rings), interpret
         )

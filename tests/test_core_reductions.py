@@ -392,7 +392,7 @@ def test_fused_kernel_matches_a_python_loop(rows, log_batch, size, seed):
     pos = rng.integers(0, size, rows).astype(np.int32)
 
     def fold(m, v, bad, t, ta, w, o, sh, d, p):
-        ema = _fused_ema.EmaIn(coeff, w, o, sh)
+        ema = _fused_ema.EmaIn(coeff, w, o)
         ring = _fused_ema.RingIn(d, p, ring_row, np.arange(rows))
         return _fused_ema.fold(m, v, bad, sh, t, ta, ema, (ring,), interpret=True)
 
