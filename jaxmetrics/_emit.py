@@ -7,6 +7,9 @@ construction one level up, which computes every batch element's report with an i
 `vmap` (effect-free) and makes *one* ordered callback carrying all of them, together
 with each element's run index, step and `when`. The host splits them. Nested `vmap`s
 stack further leading axes the same way.
+
+A wrapper that reports by itself has no run index to pass: built with `runs_by_position`,
+the batch element at position `i` of a (single) vmapped axis is run `i`.
 """
 
 from collections.abc import Callable
@@ -37,6 +40,9 @@ class InGraphEmit:
       reset: state -> state at the start of a new period.
       callback: host function `(report, step, when, run) -> None`; every argument has
         the same leading batch axes (none when not vmapped).
+      runs_by_position: the logger's number of runs, for an emit whose `run` is not
+        batched: under one `vmap` of that size, element `i` is run `i`. None: `run` must be
+        batched alongside the state.
     """
 
     def __init__(
@@ -44,8 +50,10 @@ class InGraphEmit:
         compute: Callable[[Any], Any],
         reset: Callable[[Any], Any],
         callback: Callable[..., None],
+        runs_by_position: int | None = None,
     ):
         self._compute, self._reset, self._callback = compute, reset, callback
+        self._runs_by_position = runs_by_position
         self._levels: dict[int, Callable[..., Any]] = {}
 
     def __call__(self, state: Any, step: jax.Array, when: jax.Array, run: jax.Array) -> Any:
@@ -75,7 +83,8 @@ class InGraphEmit:
         @emit.def_vmap
         def rule(axis_size, in_batched, state, step, when, run):
             if not in_batched[3]:
-                raise ValueError(_NEEDS_RUN)
+                run = self._run_by_position(nd, axis_size)
+                in_batched = (*in_batched[:3], True)
             args = jax.tree.map(
                 lambda x, b: x if b else jnp.broadcast_to(x, (axis_size, *jnp.shape(x))),
                 (state, step, when, run),
@@ -85,3 +94,20 @@ class InGraphEmit:
             return out, jax.tree.map(lambda _: True, out)
 
         return emit
+
+    def _run_by_position(self, nd: int, axis_size: int) -> jax.Array:
+        runs = self._runs_by_position
+        if runs is None:
+            raise ValueError(_NEEDS_RUN)
+        if nd > 0:
+            raise ValueError(
+                "a reporting wrapper under nested vmaps: its runs are the positions along "
+                "one vmapped axis of seeds; vmap over a single (flattened) seed axis."
+            )
+        if axis_size != runs:
+            raise ValueError(
+                f"a reporting wrapper is vmapped over {axis_size} seeds, but its Logger has "
+                f"runs={runs}: create the Logger with runs={axis_size} (seed i of the vmapped "
+                "axis reports to run i)."
+            )
+        return jnp.arange(axis_size, dtype=jnp.int32)

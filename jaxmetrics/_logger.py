@@ -399,6 +399,11 @@ class Logger(AbstractContextManager):
 
         self._packer, compute, self._flush_fns = _programs(metrics, runs, include_running)
         self._emit = InGraphEmit(compute, metrics.reset_period, self._on_emit)
+        # The reporting wrappers' emit: no run argument, seeds by their vmapped position.
+        self._wrapper_emit = InGraphEmit(
+            compute, metrics.reset_period, self._on_emit, runs_by_position=self.runs
+        )
+        self.include_running = bool(include_running)
         self._compute = compute
         self._layout_id = _history.layout_id(type(metrics._spec)._fields[0], include_running)
         self._timers = Timers()
@@ -641,10 +646,19 @@ class Logger(AbstractContextManager):
         step, run, when = _scalars("Logger.emit", step=step, run=run, when=when)
         return self._emit(state, step, when, run)
 
+    def _emit_from_wrapper(self, state: MetricsState, step: Count, when: jax.Array) -> MetricsState:
+        """`emit` for a reporting wrapper (`jaxmetrics.Reporting`): the step is an exact
+        `Count` (env steps pass 2^31 in long runs), and under `vmap` each seed's position
+        on the vmapped axis is its run."""
+        self._check_open("emit")
+        return self._wrapper_emit(state, step, when, jnp.zeros((), jnp.int32))
+
     def _on_emit(
         self, packed: tuple[np.ndarray, np.ndarray], step: Any, when: Any, run: Any
     ) -> None:
         wall_time = time.time()
+        if isinstance(step, Count):  # from a reporting wrapper: env steps, exact
+            step = to_int(step)
         # io_callback hands over jax Arrays: one copy to numpy here, not a device
         # dispatch per statistic when the writer thread unpacks them.
         n = int(np.size(when))

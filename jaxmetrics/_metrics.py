@@ -409,7 +409,10 @@ class Metrics:
             jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()),
         )
 
-    def _fresh(self, num_envs: int, shards: int) -> MetricsState:
+    def _fresh(self, num_envs: int, shards: int, ema_history: bool = False) -> MetricsState:
+        """A zero state; `ema_history` keeps each EMA row's newest values even with one
+        shard, for a state that will be merged with other devices' (one per device under
+        `pmap`), as a sharded state keeps them."""
         has_ep = self._ep_plan is not None
         n_counters = len(self._stored_counters)
 
@@ -418,7 +421,7 @@ class Metrics:
 
         return MetricsState(
             running=_episode.init(self._episode_plan, num_envs) if has_ep else None,
-            finished=jax.tree.map(per_shard, _stream.init(self._ep_plan, shards > 1))
+            finished=jax.tree.map(per_shard, _stream.init(self._ep_plan, ema_history or shards > 1))
             if has_ep
             else None,
             ended=_count.zeros(

@@ -15,6 +15,7 @@ Where the MetricsState lives, and why the wrapper sits where it does:
 Hence the order `AutoResetWrapper(MetricsWrapper(VmapWrapper(env)))`, built by `wrap`.
 """
 
+import sys
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -25,12 +26,19 @@ from brax.envs.wrappers import training as brax_training
 
 from .._layout import placed
 from .._metrics import Metrics
+from .._reporting import Reporter
 from .._state import MetricsState
 from .._validate import is_int
 from ._upstream import default_promotion
 
 STATE_KEY = "jaxmetrics"
 """The `State.info` key under which the MetricsState of the whole batch is kept."""
+
+CLOCK_KEY = "jaxmetrics_clock"
+"""The `State.info` key of a reporting wrapper's step count into the current period."""
+
+BRAX_AXIS = "i"
+"""The axis Brax's trainers (`ppo.train`, `sac.train`) `pmap` their env batch over."""
 
 
 class Transition(NamedTuple):
@@ -90,6 +98,23 @@ def _positive_int(value: Any, name: str) -> int:
     return value
 
 
+def _in_brax_evaluator() -> bool:
+    """Whether the env is being stepped (traced) by Brax's `Evaluator`.
+
+    Brax's trainers build the evaluation env with the same `wrap_env_fn` as the training
+    env, and step it through `brax.envs.wrappers.training.EvalWrapper`, which sits above
+    this wrapper; nothing in the state it passes down tells the two apart, so this looks
+    for an `EvalWrapper` among the callers. Trace time only: the compiled step holds
+    nothing of it.
+    """
+    frame = sys._getframe(1)
+    while frame is not None:
+        if isinstance(frame.f_locals.get("self"), brax_training.EvalWrapper):
+            return True
+        frame = frame.f_back
+    return False
+
+
 def _check_inner(env: Env) -> None:
     e = env
     while isinstance(e, Wrapper):
@@ -140,11 +165,25 @@ class MetricsWrapper(Wrapper):
         `NamedSharding(mesh, P("env"))`); `reset` lays the MetricsState out to match
         (`Metrics.init(num_envs, sharding=...)`) and constrains the reset keys to it, so
         every step folds metrics shard-locally.
+      logger: a `jaxmetrics.Logger` of the same spec: the wrapper then reports by itself,
+        from inside whatever jitted, scanned, vmapped or pmapped code steps it. At the
+        end of each period it hands the report (its step: `Counters/env_steps` over all
+        envs) to the logger and resets the period, in-graph; the trainer never has to
+        hand the env state back. Under Brax's `pmap` the devices' statistics are merged
+        at the report (no communication on other steps) and one report is written for
+        all envs. Under `vmap` over seeds, seed `i` reports to the logger's run `i`.
+        Envs stepped by Brax's evaluator (its `EvalWrapper`) fold but never report: the
+        training statistics hold training episodes only. None: fold only.
+      report_every: the period in env steps over all envs and devices (sub-steps, like
+        Brax's `num_timesteps`); a report is made at the first env step that reaches it.
+        None: every 100 env steps of the batch (`100 * num_envs * action_repeat`).
+      axis_name: the `pmap` axis a trainer splits the envs over, where it is bound (Brax's
+        trainers use "i"); elsewhere the batch is the whole run.
 
     Raises:
-      ValueError: for a non-positive length/repeat, an env that already contains an
-        `EpisodeWrapper`, `AutoResetWrapper` or `MetricsWrapper`, or (at `reset`) an
-        unbatched env.
+      ValueError: for a non-positive length/repeat/period, an env that already contains
+        an `EpisodeWrapper`, `AutoResetWrapper` or `MetricsWrapper`, a logger of another
+        spec, or (at `reset`) an unbatched env.
     """
 
     def __init__(
@@ -154,6 +193,9 @@ class MetricsWrapper(Wrapper):
         episode_length: int,
         action_repeat: int = 1,
         sharding: jax.sharding.Sharding | None = None,
+        logger: Any = None,
+        report_every: int | None = None,
+        axis_name: str | None = BRAX_AXIS,
     ):
         super().__init__(env)
         if not isinstance(metrics, Metrics):
@@ -171,6 +213,11 @@ class MetricsWrapper(Wrapper):
         # Under Auto mesh axes XLA chooses the layout of a jit's outputs; pinning the
         # MetricsState after each step keeps it split like the envs across jit calls.
         self._state_sharding = None if sharding is None else metrics.state_sharding(sharding)
+        self.reporter = (
+            None
+            if logger is None
+            else Reporter(metrics, logger, report_every, axis_name, "MetricsWrapper")
+        )
 
     def reset(self, rng: jax.Array) -> State:
         if self.sharding is not None:
@@ -197,7 +244,12 @@ class MetricsWrapper(Wrapper):
             episode_done=zeros,
             episode_metrics=episode_metrics,
         )
-        info[STATE_KEY] = self.metrics.init(done.shape[0], sharding=self.sharding)
+        if self.reporter is None or self.sharding is not None:
+            info[STATE_KEY] = self.metrics.init(done.shape[0], sharding=self.sharding)
+        else:
+            info[STATE_KEY] = self.reporter.init(done.shape[0])
+        if self.reporter is not None:
+            info[CLOCK_KEY] = jnp.zeros((), jnp.int32)
         return _strong_types(state.replace(info=info))
 
     def step(self, state: State, action: jax.Array) -> State:
@@ -208,6 +260,12 @@ class MetricsWrapper(Wrapper):
                 "(or replace_metrics_state) before stepping."
             )
         mstate = info.pop(STATE_KEY)
+        clock = info.pop(CLOCK_KEY, None)
+        if self.reporter is not None and clock is None:
+            raise ValueError(
+                f"this State has no info[{CLOCK_KEY!r}]: reset it with this wrapper's reset "
+                "before stepping."
+            )
         inner = state.replace(info=info)
         steps = info["steps"] + self.action_repeat
         time_up = steps >= self.episode_length
@@ -260,6 +318,12 @@ class MetricsWrapper(Wrapper):
             episode_done=done,
             episode_metrics=episode_metrics,
         )
+        if self.reporter is not None:
+            if not _in_brax_evaluator():
+                mstate, clock = self.reporter(
+                    mstate, clock, nstate.done.shape[0], self.action_repeat
+                )
+            new_info[CLOCK_KEY] = clock
         if self._state_sharding is not None:
             mstate = placed(mstate, self._state_sharding)
         new_info[STATE_KEY] = mstate
@@ -273,6 +337,9 @@ def wrap(
     action_repeat: int = 1,
     randomization_fn: Callable[..., Any] | None = None,
     sharding: jax.sharding.Sharding | None = None,
+    logger: Any = None,
+    report_every: int | None = None,
+    axis_name: str | None = BRAX_AXIS,
 ) -> Wrapper:
     """`brax.envs.training.wrap` with `MetricsWrapper` in place of `EpisodeWrapper`.
 
@@ -289,6 +356,13 @@ def wrap(
       sharding: the env batch's sharding when envs are split over devices, e.g.
         `NamedSharding(mesh, P("env"))`: the reset keys, hence the env batch, and the
         MetricsState are laid out by it, and metrics fold shard-locally.
+      logger: a `jaxmetrics.Logger` of `metrics`: the env then reports by itself every
+        `report_every` env steps (see `MetricsWrapper`), e.g. inside Brax's own trainer:
+        `ppo.train(..., wrap_env_fn=functools.partial(jmb.wrap, metrics=metrics,
+        logger=logger))`. Close the logger after training to write what is pending.
+      report_every: the period in env steps over all envs and devices; None: every 100
+        env steps of the batch.
+      axis_name: the `pmap` axis of the trainer's devices (Brax's: "i").
 
     Returns:
       The wrapped env; `reset` takes one key per env (`[num_envs, 2]`).
@@ -317,7 +391,16 @@ def wrap(
     else:
         batched = brax_training.DomainRandomizationVmapWrapper(env, randomization_fn)
     return brax_training.AutoResetWrapper(
-        MetricsWrapper(batched, metrics, episode_length, action_repeat, sharding)
+        MetricsWrapper(
+            batched,
+            metrics,
+            episode_length,
+            action_repeat,
+            sharding,
+            logger=logger,
+            report_every=report_every,
+            axis_name=axis_name,
+        )
     )
 
 

@@ -18,7 +18,7 @@ from mujoco_playground import MjxEnv
 from mujoco_playground import wrapper as playground_wrapper
 
 from .._metrics import Metrics
-from ..brax._wrapper import MetricsWrapper
+from ..brax._wrapper import BRAX_AXIS, MetricsWrapper
 
 
 def _check_env(env: Any) -> None:
@@ -57,6 +57,9 @@ def wrap(
     randomization_fn: Callable[..., Any] | None = None,
     full_reset: bool = False,
     sharding: jax.sharding.Sharding | None = None,
+    logger: Any = None,
+    report_every: int | None = None,
+    axis_name: str | None = BRAX_AXIS,
 ) -> playground_wrapper.Wrapper:
     """`mujoco_playground.wrapper.wrap_for_brax_training` with metrics.
 
@@ -71,7 +74,7 @@ def wrap(
 
     For Brax's PPO (what Playground's `learning/train_jax_ppo.py` runs):
     `ppo.train(..., wrap_env_fn=functools.partial(jaxmetrics.playground.wrap,
-    metrics=metrics))`.
+    metrics=metrics, logger=logger))` reports every period while training runs.
 
     Args:
       env: an unwrapped Playground env, e.g. `registry.load("CartpoleBalance")`.
@@ -84,6 +87,12 @@ def wrap(
         axis; the MetricsState kept there has none.
       sharding: the env batch's sharding when envs are split over devices (see
         `jaxmetrics.brax.wrap`).
+      logger: a `jaxmetrics.Logger` of `metrics`: the env reports by itself every
+        `report_every` env steps, also inside Brax's trainer (see
+        `jaxmetrics.brax.MetricsWrapper`). None: fold only.
+      report_every: the period in env steps over all envs and devices; None: every 100
+        env steps of the batch.
+      axis_name: the `pmap` axis of the trainer's devices (Brax's: "i").
 
     Returns:
       The wrapped env; `reset` takes one key per env (`[num_envs, 2]`).
@@ -105,5 +114,14 @@ def wrap(
     else:
         batched = playground_wrapper.BraxDomainRandomizationVmapWrapper(env, randomization_fn)
     return playground_wrapper.BraxAutoResetWrapper(
-        MetricsWrapper(batched, metrics, episode_length, action_repeat, sharding)
+        MetricsWrapper(
+            batched,
+            metrics,
+            episode_length,
+            action_repeat,
+            sharding,
+            logger=logger,
+            report_every=report_every,
+            axis_name=axis_name,
+        )
     )

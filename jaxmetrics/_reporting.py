@@ -1,0 +1,152 @@
+"""Reporting from inside an env wrapper, for trainers that keep the env state to themselves.
+
+Brax's `ppo.train`, Playground's training script and any jitted loop that steps an env
+without handing its state back give the user no place to call `Logger.flush`. A wrapper
+built with a `Reporter` reports by itself: it counts its own steps in-graph and, at the
+end of each period, hands the report to the Logger through the in-graph emit (an ordered
+`io_callback` under `lax.cond`, taken on period ends only) and resets the period.
+
+Under `pmap` (Brax's trainers split the envs over local devices, axis `"i"`) each device
+folds its own envs with no communication per step. At a period end the devices gather
+their finished-episode statistics (one `all_gather` of O(metrics) values, inside the
+period-end branch), which is exactly a state sharded by device (`Metrics.init(...,
+sharding=...)`), so the report is that of one run over all envs, with windows and EMAs in
+the order of the global env index; one device writes it.
+"""
+
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from . import _count
+from ._count import Count
+from ._metrics import Metrics
+from ._state import MetricsState
+from ._validate import is_int
+
+DEFAULT_PERIOD_CALLS = 100
+"""Without `report_every`, a wrapper reports every 100 steps of its env batch."""
+
+
+def axis_size(axis_name: str | None) -> int | None:
+    """The size of the mapped axis `axis_name` where the caller is traced under it (a
+    `pmap` or `shard_map` of that name), else None."""
+    if axis_name is None:
+        return None
+    try:
+        return int(jax.lax.axis_size(axis_name))
+    except NameError:  # not bound here: a plain jit, or the trainer's evaluator
+        return None
+
+
+class Reporter:
+    """What a wrapper needs to report by itself: the Logger, the period and the device axis.
+
+    Args:
+      metrics: the wrapper's spec; the Logger must be of the same spec.
+      logger: the `jaxmetrics.Logger` the reports go to.
+      report_every: the period in env steps over all envs and devices (the units of the
+        report's step, `Counters/env_steps`); None: every 100 steps of the env batch. A
+        report is made at the first step that reaches the period, so it is exact when the
+        period is a multiple of the env steps of one step of the batch.
+      axis_name: the mapped axis the trainer splits the envs over (Brax's trainers: `"i"`),
+        used where the env is stepped under it; elsewhere the batch is the whole run.
+      where: the wrapper's name, for error messages.
+    """
+
+    def __init__(
+        self,
+        metrics: Metrics,
+        logger: Any,
+        report_every: int | None,
+        axis_name: str | None,
+        where: str,
+    ):
+        from ._logger import Logger  # the Logger imports the spec; the spec does not import it
+
+        if not isinstance(logger, Logger):
+            raise TypeError(f"{where}(logger=...) must be a jaxmetrics.Logger, got {logger!r}.")
+        if logger.metrics._spec._fields != metrics._spec._fields:
+            raise ValueError(
+                f"{where}: the Logger was built for another Metrics spec; create it with the "
+                "wrapper's spec: jm.Logger(metrics, writers)."
+            )
+        if "env_steps" not in metrics.counter_names:
+            raise ValueError(
+                f"{where}(logger=...): the spec has no terms, so it counts no env steps to "
+                "report at; give it terms, or flush the state yourself."
+            )
+        if report_every is not None and (not is_int(report_every) or report_every < 1):
+            raise ValueError(
+                f"{where}(report_every=...) must be a positive int (env steps over all envs) "
+                f"or None, got {report_every!r}."
+            )
+        if axis_name is not None and not isinstance(axis_name, str):
+            raise TypeError(f"{where}(axis_name=...) must be a str or None, got {axis_name!r}.")
+        self.metrics, self.logger, self.where = metrics, logger, where
+        self.report_every = None if report_every is None else int(report_every)
+        self.axis_name = axis_name
+        self._env_steps = metrics._shard_counters.index("env_steps")
+
+    def init(self, num_envs: int) -> MetricsState:
+        """The fresh state of one batch: under the trainer's device axis it keeps each
+        EMA's newest values, so that the devices' states merge exactly at a report."""
+        devices = axis_size(self.axis_name)
+        if devices is None:
+            return self.metrics.init(num_envs)
+        return self.metrics._fresh(num_envs, 1, ema_history=True)
+
+    def period_calls(self, num_envs: int, steps_per_call: int) -> int:
+        """Steps of the batch per period: static, from the batch at trace time."""
+        devices = axis_size(self.axis_name) or 1
+        if self.report_every is None:
+            return DEFAULT_PERIOD_CALLS
+        return max(1, math.ceil(self.report_every / (num_envs * steps_per_call * devices)))
+
+    def __call__(
+        self, state: MetricsState, clock: jax.Array, num_envs: int, steps_per_call: int
+    ) -> tuple[MetricsState, jax.Array]:
+        """After one step of the batch: `(state, clock)`, reported and reset where the
+        period ends (in-graph; no host traffic on the other steps)."""
+        clock = jnp.asarray(clock, jnp.int32) + 1
+        when = clock >= self.period_calls(num_envs, steps_per_call)
+        clock = jnp.where(when, jnp.zeros_like(clock), clock)
+        if axis_size(self.axis_name) is None:
+            return self.logger._emit_from_wrapper(state, self._step(state), when), clock
+        name = self.axis_name
+
+        def report(state: MetricsState) -> MetricsState:
+            merged = self._gathered(state, name)
+
+            def write(merged: MetricsState) -> MetricsState:
+                return self.logger._emit_from_wrapper(merged, self._step(merged), when)
+
+            first = jax.lax.axis_index(name) == 0
+            jax.lax.cond(first, write, lambda s: s, merged)
+            return self.metrics.reset_period(state)
+
+        return jax.lax.cond(when, report, lambda s: s, state), clock
+
+    def _step(self, state: MetricsState) -> Count:
+        """The report's step: env steps over every env of the state."""
+        assert state.ended is not None
+        totals = _count.total(state.ended)
+        return Count(totals.hi[self._env_steps], totals.lo[self._env_steps])
+
+    def _gathered(self, state: MetricsState, name: str) -> MetricsState:
+        """Every device's statistics as shards of one state, in device order (the order
+        of the global env index: the trainer gives device `d` the `d`-th block of envs)."""
+
+        def gather(tree: Any) -> Any:
+            return jax.tree.map(lambda x: jax.lax.all_gather(x, name, tiled=True), tree)
+
+        running = state.running
+        if self.logger.include_running and running is not None:
+            running = jax.tree.map(
+                lambda x: jax.lax.all_gather(x, name, axis=x.ndim - 1, tiled=True), running
+            )
+        return state._replace(
+            running=running, finished=gather(state.finished), ended=gather(state.ended)
+        )
