@@ -1,0 +1,257 @@
+"""Wrappers that report by themselves (`wrap_step(..., logger=)`): one record per period,
+in order, equal to a float64 Python loop over the same rewards and dones; one run over all
+devices under `pmap`; one run per seed under `vmap`; bad input named at build or trace time.
+
+Brax's own trainer with the reporting wrapper is in `test_brax_reporting.py`."""
+
+import jax
+import jax.extend
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmetrics as jm
+
+NUM_ENVS, STEPS, PERIOD_CALLS, WINDOW = 8, 24, 6, 5
+
+
+def _spec() -> jm.Metrics:
+    return jm.Metrics(
+        terms={
+            "ret": jm.Term(
+                lambda t: t.reward,
+                reduce="sum",
+                stats=("mean", "std", "max", "count", jm.window(WINDOW), jm.ema(0.5)),
+            )
+        }
+    )
+
+
+def _episodes(seed: int, num_envs: int, steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rewards and dones `[steps, num_envs]` (float32 rewards, ~1 in 3 steps ends)."""
+    rng = np.random.default_rng(seed)
+    rewards = rng.normal(1.0, 2.0, (steps, num_envs)).astype(np.float32)
+    dones = rng.random((steps, num_envs)) < 0.35
+    return rewards, dones
+
+
+def _step(carry, inputs):
+    """A step that replays recorded rewards and dones (the carry is unused)."""
+    reward, done = inputs
+    return carry, reward, reward, done
+
+
+def _reference(rewards: np.ndarray, dones: np.ndarray, period_calls: int) -> list[dict]:
+    """Per period (in order): count, mean, std, max, window mean and EMA of the returns of
+    the episodes that ended in it, in float64, envs in index order within a step."""
+    acc = np.zeros(rewards.shape[1])
+    window: list[float] = []
+    ema = None
+    out, ended = [], []
+    for t in range(rewards.shape[0]):
+        acc += rewards[t].astype(np.float64)
+        for e in np.flatnonzero(dones[t]):
+            ended.append(acc[e])
+            window = (window + [acc[e]])[-WINDOW:]
+            ema = acc[e] if ema is None else 0.5 * acc[e] + 0.5 * ema
+            acc[e] = 0.0
+        if (t + 1) % period_calls == 0:
+            x = np.asarray(ended)
+            out.append(
+                {
+                    "count": len(x),
+                    "mean": x.mean() if len(x) else None,
+                    "std": x.std() if len(x) else None,
+                    "max": x.max() if len(x) else None,
+                    "window_mean": np.mean(window) if window else None,
+                    "ema": ema,
+                }
+            )
+            ended = []
+    return out
+
+
+def _check(records, expected, num_envs):
+    assert [r.step for r in records] == [
+        (i + 1) * PERIOD_CALLS * num_envs for i in range(len(expected))
+    ]
+    for r, want in zip(records, expected):
+        s = r.scalars
+        assert s["Episode_Metrics/ret/count"] == want["count"]
+        assert s["Counters/env_steps"] == r.step
+        for stat, tag in (
+            ("mean", "Episode_Metrics/ret"),
+            ("std", "Episode_Metrics/ret/std"),
+            ("max", "Episode_Metrics/ret/max"),
+            ("window_mean", "Episode_Metrics/ret/window_mean"),
+            ("ema", "Episode_Metrics/ret/ema"),
+        ):
+            if want[stat] is None:
+                assert tag not in s
+            else:
+                assert s[tag] == pytest.approx(want[stat], rel=1e-5, abs=1e-5), (r.step, stat)
+
+
+def _run_scan(wrapped, rewards, dones, num_envs):
+    def run(r, d):
+        carry = wrapped.init(jnp.zeros(()), num_envs)
+        body = lambda c, x: (wrapped(c, x)[0], None)  # noqa: E731
+        return jax.lax.scan(body, carry, (r, d))[0]
+
+    return run
+
+
+def test_a_reporting_step_writes_each_period_equal_to_a_float64_loop():
+    metrics, memory = _spec(), jm.MemoryWriter()
+    rewards, dones = _episodes(0, NUM_ENVS, STEPS)
+    with jm.Logger(metrics, [memory]) as logger:
+        wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=PERIOD_CALLS * NUM_ENVS)
+        run = jax.jit(_run_scan(wrapped, rewards, dones, NUM_ENVS))
+        carry = run(rewards, dones)
+        # The state the loop hands back holds no more than the steps since the last report.
+        assert int(carry[2]) == 0
+    expected = _reference(rewards, dones, PERIOD_CALLS)
+    assert len(memory.records) == STEPS // PERIOD_CALLS
+    _check(memory.records, expected, NUM_ENVS)
+
+
+def test_the_period_is_rounded_up_to_whole_steps_of_the_batch():
+    metrics, memory = _spec(), jm.MemoryWriter()
+    rewards, dones = _episodes(1, NUM_ENVS, STEPS)
+    with jm.Logger(metrics, [memory]) as logger:
+        # 41 env steps = 5.1 steps of 8 envs: a report every 6 steps (48 env steps).
+        wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=41)
+        jax.jit(_run_scan(wrapped, rewards, dones, NUM_ENVS))(rewards, dones)
+    _check(memory.records, _reference(rewards, dones, PERIOD_CALLS), NUM_ENVS)
+
+
+def test_the_default_period_is_100_steps_of_the_batch():
+    metrics, memory = _spec(), jm.MemoryWriter()
+    rewards, dones = _episodes(2, 2, 250)
+    with jm.Logger(metrics, [memory]) as logger:
+        wrapped = jm.wrap_step(_step, metrics, logger=logger)
+        jax.jit(_run_scan(wrapped, rewards, dones, 2))(rewards, dones)
+    assert [r.step for r in memory.records] == [200, 400]
+
+
+def test_vmapped_seeds_report_each_to_its_own_run():
+    seeds = 3
+    metrics = _spec()
+    memory = [jm.MemoryWriter() for _ in range(seeds)]
+    data = [_episodes(10 + s, NUM_ENVS, STEPS) for s in range(seeds)]
+    rewards = np.stack([r for r, _ in data])
+    dones = np.stack([d for _, d in data])
+    with jm.Logger(metrics, lambda run: [memory[run]], runs=seeds) as logger:
+        wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=PERIOD_CALLS * NUM_ENVS)
+        jax.jit(jax.vmap(_run_scan(wrapped, rewards, dones, NUM_ENVS)))(rewards, dones)
+        # One host callback per period end carries every seed.
+        assert logger.emit_calls == STEPS // PERIOD_CALLS
+    for s in range(seeds):
+        _check(memory[s].records, _reference(*data[s], PERIOD_CALLS), NUM_ENVS)
+
+
+def test_pmapped_envs_report_one_run_over_all_devices():
+    devices = 2
+    per_device = NUM_ENVS // devices
+    metrics, memory = _spec(), jm.MemoryWriter()
+    rewards, dones = _episodes(3, NUM_ENVS, STEPS)
+    # Device d steps the d-th block of envs, as Brax's trainers split them.
+    split = lambda x: np.stack(np.split(x, devices, axis=1))  # noqa: E731
+    with jm.Logger(metrics, [memory]) as logger:
+        wrapped = jm.wrap_step(
+            _step,
+            metrics,
+            logger=logger,
+            report_every=PERIOD_CALLS * NUM_ENVS,
+            axis_name="i",
+        )
+        run = jax.pmap(
+            _run_scan(wrapped, None, None, per_device),
+            axis_name="i",
+            devices=jax.devices("cpu")[:devices],
+        )
+        jax.block_until_ready(run(split(rewards), split(dones)))
+        assert logger.emit_calls == STEPS // PERIOD_CALLS  # one writer, not one per device
+    # Windows and EMA in the order of the global env index, as on one device.
+    _check(memory.records, _reference(rewards, dones, PERIOD_CALLS), NUM_ENVS)
+
+
+def test_a_pmapped_step_folds_with_no_collective_outside_the_report():
+    metrics = _spec()
+    with jm.Logger(metrics, [jm.MemoryWriter()]) as logger:
+        wrapped = jm.wrap_step(_step, metrics, logger=logger, axis_name="i")
+        rewards, dones = _episodes(4, 4, 3)
+        run = jax.pmap(
+            _run_scan(wrapped, None, None, 2), axis_name="i", devices=jax.devices("cpu")[:2]
+        )
+        split = lambda x: np.stack(np.split(x, 2, axis=1))  # noqa: E731
+        jaxpr = jax.make_jaxpr(run)(split(rewards), split(dones)).jaxpr
+    found = list(_collectives(jaxpr, ()))
+    assert found, "the report gathers the devices' statistics"
+    # Each collective sits under a cond (the period end) inside the step loop.
+    for name, path in found:
+        assert "scan" in path and "cond" in path[path.index("scan") :], (name, path)
+
+
+def _collectives(jaxpr, path):
+    """(primitive, enclosing primitives) of every collective in a jaxpr, recursively."""
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name in ("all_gather", "psum", "all_to_all", "ppermute", "pmax", "pmin"):
+            yield name, path
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            yield from _collectives(sub, (*path, name))
+
+
+def test_closing_after_training_writes_everything_once_also_when_retraced():
+    metrics, memory = _spec(), jm.MemoryWriter()
+    rewards, dones = _episodes(5, NUM_ENVS, STEPS)
+    logger = jm.Logger(metrics, [memory])
+    wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=PERIOD_CALLS * NUM_ENVS)
+
+    def run(carry, r, d):
+        return jax.lax.scan(lambda c, x: (wrapped(c, x)[0], None), carry, (r, d))[0]
+
+    carry = jax.jit(run)(wrapped.init(jnp.zeros(()), NUM_ENVS), rewards[:9], dones[:9])
+    # The trainer traces its step again (a new jit of the same wrapped env) and goes on
+    # from the state it kept: each period is written once, the one cut by the retrace too.
+    jax.jit(lambda c, r, d: run(c, r, d))(carry, rewards[9:], dones[9:])
+    logger.close()
+    logger.close()
+    assert len(memory.records) == STEPS // PERIOD_CALLS
+    _check(memory.records, _reference(rewards, dones, PERIOD_CALLS), NUM_ENVS)
+
+
+def test_bad_input_is_named_when_the_wrapper_is_built():
+    metrics = _spec()
+    logger = jm.Logger(metrics, [jm.MemoryWriter()])
+    other = jm.Metrics(terms={"x": jm.Term(lambda t: t.reward)})
+    with pytest.raises(ValueError, match="Logger was built for another Metrics spec"):
+        jm.wrap_step(_step, other, logger=logger)
+    with pytest.raises(ValueError, match=r"report_every=\.\.\.\) must be a positive int"):
+        jm.wrap_step(_step, metrics, logger=logger, report_every=0)
+    with pytest.raises(TypeError, match=r"logger=\.\.\.\) must be a jaxmetrics.Logger"):
+        jm.wrap_step(_step, metrics, logger=[jm.MemoryWriter()])
+    with pytest.raises(TypeError, match=r"axis_name=\.\.\.\) must be a str"):
+        jm.wrap_step(_step, metrics, logger=logger, axis_name=0)
+    logged_only = jm.Metrics(logged=["loss"])
+    with pytest.raises(ValueError, match="counts no env steps"):
+        jm.wrap_step(_step, logged_only, logger=jm.Logger(logged_only, []))
+    wrapped = jm.wrap_step(_step, metrics, logger=logger)
+    with pytest.raises(TypeError, match=r"triple \(carry, metrics_state, clock\)"):
+        wrapped((jnp.zeros(()), metrics.init(2)), (jnp.zeros(2), jnp.zeros(2, bool)))
+    logger.close()
+
+
+def test_seeds_vmapped_against_a_logger_of_other_runs_are_refused_at_trace_time():
+    metrics = _spec()
+    rewards, dones = _episodes(6, 2, 4)
+    with jm.Logger(metrics, lambda run: [jm.MemoryWriter()], runs=2) as logger:
+        wrapped = jm.wrap_step(_step, metrics, logger=logger)
+        run = jax.vmap(_run_scan(wrapped, None, None, 2))
+        stacked = (np.stack([rewards] * 3), np.stack([dones] * 3))
+        with pytest.raises(ValueError, match="vmapped over 3 seeds.*runs=3"):
+            jax.jit(run)(*stacked)
+        nested = jax.vmap(jax.vmap(_run_scan(wrapped, None, None, 2)))
+        with pytest.raises(ValueError, match="nested vmaps"):
+            jax.jit(nested)(np.stack([stacked[0][:2]] * 2), np.stack([stacked[1][:2]] * 2))
