@@ -205,6 +205,13 @@ def _close_all_at_exit() -> None:
 atexit.register(_close_all_at_exit)
 
 
+def _shifted(host: Callable[[], Mapping[str, Any]], tag: str, offset: int) -> dict[str, Any]:
+    """The host report with the count `tag` raised by `offset`."""
+    values = dict(host())
+    values[tag] = values[tag] + offset
+    return values
+
+
 class _PendingNonFinite(NamedTuple):
     """A report whose non-finite counts the caller's thread has yet to check."""
 
@@ -404,6 +411,13 @@ class Logger(AbstractContextManager):
             compute, metrics.reset_period, self._on_emit, runs_by_position=self.runs
         )
         self.include_running = bool(include_running)
+        # Per run, a reporting wrapper's last env-step count, the step written for it and
+        # the offset that continues the count after the trainer resets the envs.
+        self._wrapper_raw: list[int | None] = [None] * self.runs
+        self._wrapper_step = [0] * self.runs
+        self._wrapper_offset = [0] * self.runs
+        self._restarts: list[str] = []
+        self._env_steps_tag = _tags.tag(metrics._counter_prefix, "env_steps", "total")
         self._compute = compute
         self._layout_id = _history.layout_id(type(metrics._spec)._fields[0], include_running)
         self._timers = Timers()
@@ -657,7 +671,8 @@ class Logger(AbstractContextManager):
         self, packed: tuple[np.ndarray, np.ndarray], step: Any, when: Any, run: Any
     ) -> None:
         wall_time = time.time()
-        if isinstance(step, Count):  # from a reporting wrapper: env steps, exact
+        from_wrapper = isinstance(step, Count)
+        if from_wrapper:  # env steps, exact
             step = to_int(step)
         # io_callback hands over jax Arrays: one copy to numpy here, not a device
         # dispatch per statistic when the writer thread unpacks them.
@@ -677,9 +692,36 @@ class Logger(AbstractContextManager):
                         ValueError(f"Logger.emit: run index {r} is outside [0, {self.runs}).")
                     )
                     continue
-                self._unchecked.append(_PendingNonFinite(s, (r,), counts[i]))
                 host = functools.partial(self._packer.unpack, floats[i], counts[i])
+                if from_wrapper:
+                    s, host = self._continued(r, s, host)
+                self._unchecked.append(_PendingNonFinite(s, (r,), counts[i]))
                 self._queue.put(functools.partial(self._write_run, r, host, s, wall_time, {}))
+
+    def _continued(
+        self, run: int, raw: int, host: Callable[[], Mapping[str, Any]]
+    ) -> tuple[int, Callable[[], Mapping[str, Any]]]:
+        """A reporting wrapper's step and host report, continued across env resets.
+
+        A trainer that resets its envs (Brax's `num_resets_per_eval`) restarts the
+        wrapper's statistics and env-step count; its next record would go back in steps.
+        The record's step and `Counters/env_steps` continue from the run's last record
+        instead: the steps between that record and the reset are not counted (none when
+        the period divides the steps between resets)."""
+        last = self._wrapper_raw[run]
+        if last is not None and raw <= last:
+            self._wrapper_offset[run] = self._wrapper_step[run]
+            self._restarts.append(
+                f"run {run}: the envs were reset after step {self._wrapper_step[run]} (e.g. "
+                "Brax's num_resets_per_eval): windows and EMAs restarted, and episodes ended "
+                "since that record were not reported; records go on from that step"
+            )
+        self._wrapper_raw[run] = raw
+        offset = self._wrapper_offset[run]
+        self._wrapper_step[run] = offset + raw
+        if offset == 0:
+            return raw, host
+        return offset + raw, functools.partial(_shifted, host, self._env_steps_tag, offset)
 
     # ------------------------------------------------------------------ report history
 
@@ -1028,6 +1070,10 @@ class Logger(AbstractContextManager):
     def _surface(self, pending: Sequence[_PendingNonFinite]) -> None:
         """Applies the non-finite policy to earlier reports on the caller's thread (warns
         for "skip", raises `NonFiniteError` for "raise") and raises what was deferred."""
+        with self._lock:
+            restarts, self._restarts = self._restarts, []
+        for message in restarts:
+            _warn_at_caller(message)
         raising: list[str] = []
         for check in pending:
             n = len(check.runs)

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 
 from . import _count
 from ._count import Count
+from ._logger import Logger
 from ._metrics import Metrics
 from ._state import MetricsState
 from ._validate import is_int
@@ -64,8 +65,6 @@ class Reporter:
         axis_name: str | None,
         where: str,
     ):
-        from ._logger import Logger  # the Logger imports the spec; the spec does not import it
-
         if not isinstance(logger, Logger):
             raise TypeError(f"{where}(logger=...) must be a jaxmetrics.Logger, got {logger!r}.")
         if logger.metrics._spec._fields != metrics._spec._fields:

@@ -35,9 +35,19 @@ CORE = {
     "_stream",
     "_tags",
     "_validate",
+}
+# The wrappers that report by themselves hand reports to the Logger: host layer.
+HOST = {
+    "_emit",
+    "_history",
+    "_logger",
+    "_report",
+    "_reporting",
+    "_seeds",
+    "_timer",
+    "_transfer",
     "_wrap_step",
 }
-HOST = {"_emit", "_history", "_logger", "_report", "_seeds", "_timer", "_transfer"}
 LAYERS = [CORE, HOST, {"_writers"}, {"brax"}, {"playground"}, {"examples", "bench", "__init__"}]
 # What a writer sees (TagInfo, Record, the registries) must not pull in JAX.
 PURE = {"_reductions", "_report", "_spec", "_statistics", "_tags", "_validate", "_writers"}

@@ -255,3 +255,28 @@ def test_seeds_vmapped_against_a_logger_of_other_runs_are_refused_at_trace_time(
         nested = jax.vmap(jax.vmap(_run_scan(wrapped, None, None, 2)))
         with pytest.raises(ValueError, match="nested vmaps"):
             jax.jit(nested)(np.stack([stacked[0][:2]] * 2), np.stack([stacked[1][:2]] * 2))
+
+
+def test_a_trainer_reset_of_the_envs_continues_the_steps_and_says_so():
+    # Brax's num_resets_per_eval (Playground's configs set 1 or 10) resets the envs, and
+    # with them the wrapper's statistics and env-step count, between training epochs.
+    metrics, memory = _spec(), jm.MemoryWriter()
+    rewards, dones = _episodes(7, NUM_ENVS, STEPS)
+    logger = jm.Logger(metrics, [memory])
+    wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=PERIOD_CALLS * NUM_ENVS)
+    run = jax.jit(_run_scan(wrapped, None, None, NUM_ENVS))
+    half = STEPS // 2
+    run(rewards[:half], dones[:half])
+    run(rewards[half:], dones[half:])  # starts from wrapped.init again: a reset
+    with pytest.warns(RuntimeWarning, match=r"run 0: the envs were reset after step 96"):
+        logger.close()
+    records = memory.records
+    # Steps and the env-step counter go on; statistics are those of each stretch.
+    _check(records[:2], _reference(rewards[:half], dones[:half], PERIOD_CALLS), NUM_ENVS)
+    second = _reference(rewards[half:], dones[half:], PERIOD_CALLS)
+    assert [r.step for r in records[2:]] == [144, 192]
+    assert [r.scalars["Counters/env_steps"] for r in records] == [48, 96, 144, 192]
+    assert all(r.scalars["Counters/env_steps/per_sec"] > 0 for r in records[1:])
+    for r, want in zip(records[2:], second):
+        assert r.scalars["Episode_Metrics/ret/count"] == want["count"]
+        assert r.scalars["Episode_Metrics/ret"] == pytest.approx(want["mean"], rel=1e-5)

@@ -1,0 +1,148 @@
+"""Brax's own `ppo.train` with the reporting wrapper: every period's record reaches
+TensorBoard while training runs, over all envs of both devices Brax pmaps over, equal to a
+float64 unroll of the rewards and dones the training envs produced; the evaluator's
+episodes are not in it; closing the logger after training writes everything once."""
+
+import functools
+
+import jax
+import jax._src.api
+import numpy as np
+import pytest
+from brax import envs
+from brax.envs.base import Wrapper
+from brax.envs.wrappers import training as brax_training
+from brax.training.agents.ppo import train as brax_ppo
+from jax.experimental import io_callback
+from tensorboard.backend.event_processing import event_accumulator
+
+import jaxmetrics as jm
+import jaxmetrics.brax as jmb
+
+DEVICES, NUM_ENVS, TIMESTEPS, REPORT_EVERY = 2, 16, 2048, 512
+
+
+class Recorder(Wrapper):
+    """Records each training step's reward and done (as the metrics see them) per device."""
+
+    def __init__(self, env, seen):
+        super().__init__(env)
+        self.seen = seen
+
+    def step(self, state, action):
+        nstate = self.env.step(state, action)
+        try:
+            device = jax.lax.axis_index("i")
+        except NameError:  # Brax's evaluator: not a training step
+            return nstate
+
+        def record(d, reward, done):
+            self.seen.setdefault(int(d), []).append((np.asarray(reward), np.asarray(done)))
+
+        io_callback(record, None, device, nstate.reward, nstate.done, ordered=True)
+        return nstate
+
+
+def _wrap(env, metrics, logger, seen, episode_length, action_repeat, randomization_fn):
+    """`jmb.wrap`'s stack with the Recorder between the auto-reset and the metrics."""
+    assert randomization_fn is None
+    inner = jmb.MetricsWrapper(
+        brax_training.VmapWrapper(env),
+        metrics,
+        episode_length,
+        action_repeat,
+        logger=logger,
+        report_every=REPORT_EVERY,
+    )
+    return brax_training.AutoResetWrapper(Recorder(inner, seen))
+
+
+def _reference(seen: dict[int, list], period_calls: int) -> list[dict]:
+    """Per period: count, mean and max of episode returns and mean length, in float64,
+    over the global env index (device d holds the d-th block of envs)."""
+    rewards = np.concatenate([np.stack([r for r, _ in seen[d]]) for d in sorted(seen)], axis=1)
+    dones = np.concatenate([np.stack([x for _, x in seen[d]]) for d in sorted(seen)], axis=1)
+    ret = np.zeros(rewards.shape[1])
+    length = np.zeros(rewards.shape[1])
+    out, returns, lengths = [], [], []
+    for t in range(rewards.shape[0]):
+        ret += rewards[t].astype(np.float64)
+        length += 1
+        for e in np.flatnonzero(dones[t]):
+            returns.append(ret[e])
+            lengths.append(length[e])
+            ret[e] = length[e] = 0.0
+        if (t + 1) % period_calls == 0:
+            out.append({"returns": np.asarray(returns), "lengths": np.asarray(lengths)})
+            returns, lengths = [], []
+    return out
+
+
+def _read(logdir) -> dict[str, list[tuple[int, float]]]:
+    acc = event_accumulator.EventAccumulator(
+        str(logdir), size_guidance={event_accumulator.SCALARS: 0}
+    )
+    acc.Reload()
+    return {t: [(e.step, e.value) for e in acc.Scalars(t)] for t in acc.Tags()["scalars"]}
+
+
+@pytest.fixture
+def brax_ppo_on_this_jax(monkeypatch):
+    # brax 0.14.2's ppo.train calls jax.device_put_replicated, which JAX 0.10 removed from
+    # the public namespace (see test_brax_progress.py).
+    monkeypatch.setattr(
+        jax, "device_put_replicated", jax._src.api.device_put_replicated, raising=False
+    )
+
+
+@pytest.mark.slow
+def test_brax_ppo_train_reports_training_episodes_over_both_devices(tmp_path, brax_ppo_on_this_jax):
+    metrics = jm.Metrics(
+        terms={
+            "return": jmb.episode_return(stats=("mean", "max", "count")),
+            "length": jmb.episode_length(stats=("mean", "count")),
+        }
+    )
+    seen: dict[int, list] = {}
+    progress: list[tuple[int, set]] = []
+    logger = jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
+    with jmb.default_promotion():  # the suite runs strict (conftest)
+        brax_ppo.train(
+            environment=envs.get_environment("inverted_pendulum", backend="mjx"),
+            num_timesteps=TIMESTEPS,
+            episode_length=50,
+            num_envs=NUM_ENVS,
+            batch_size=16,
+            num_minibatches=2,
+            unroll_length=8,
+            num_updates_per_batch=1,
+            num_evals=2,
+            num_eval_envs=4,
+            max_devices_per_host=DEVICES,
+            progress_fn=lambda step, m: progress.append((int(step), set(m))),
+            wrap_env_fn=functools.partial(_wrap, metrics=metrics, logger=logger, seen=seen),
+            seed=0,
+        )
+    logger.close()
+    # Brax trained on both devices and evaluated twice (its eval envs fold, never report).
+    assert sorted(seen) == list(range(DEVICES))
+    assert {len(v) for v in seen.values()} == {TIMESTEPS // NUM_ENVS}
+    assert [s for s, keys in progress if "eval/episode_reward" in keys] == [0, TIMESTEPS]
+
+    expected = _reference(seen, REPORT_EVERY // NUM_ENVS)
+    tb = _read(tmp_path)
+    steps = [REPORT_EVERY * (k + 1) for k in range(TIMESTEPS // REPORT_EVERY)]
+    assert [s for s, _ in tb["Counters/env_steps"]] == steps
+    assert [v for _, v in tb["Counters/env_steps"]] == steps
+    counts = [s for s, _ in tb["Episode_Metrics/return/count"]]
+    assert counts == steps  # every period's record, in order, once
+    for k, want in enumerate(expected):
+        n = len(want["returns"])
+        assert n > 0
+        assert tb["Episode_Metrics/return/count"][k][1] == n
+        assert tb["Episode_Metrics/length/count"][k][1] == n
+        assert tb["Episode_Metrics/return"][k][1] == pytest.approx(want["returns"].mean(), rel=1e-5)
+        assert tb["Episode_Metrics/return/max"][k][1] == pytest.approx(
+            want["returns"].max(), rel=1e-5
+        )
+        assert tb["Episode_Metrics/length"][k][1] == pytest.approx(want["lengths"].mean(), rel=1e-6)
