@@ -76,7 +76,14 @@ def test_script_block_runs_as_pasted(line, block, tmp_path):
         assert "Failed to import" not in out.stdout
         assert "not actively being maintained" not in out.stderr
     if "ProgressFn" in block:
-        acc = event_accumulator.EventAccumulator(str(tmp_path / "runs" / "brax_ppo"))
+        acc = event_accumulator.EventAccumulator(str(tmp_path / "runs" / "brax_ppo" / "brax"))
         acc.Reload()
         tags = set(acc.Tags()["scalars"])
         assert {"Eval_Metrics/episode_return", "Train/value_loss", "Counters/env_steps"} <= tags
+        # The reporting wrapper's records, every 256 env steps, from inside ppo.train.
+        acc = event_accumulator.EventAccumulator(str(tmp_path / "runs" / "brax_ppo" / "metrics"))
+        acc.Reload()
+        counts = acc.Scalars("Episode_Metrics/return/count")
+        assert [e.step for e in counts] == [256, 512, 768, 1024]
+        assert all(e.value > 0 for e in counts)
+        assert out.stdout.split() == ["4"]
