@@ -1,0 +1,504 @@
+"""What the reporting Brax wrapper costs inside Brax's own trainer (`ppo.train`).
+
+`python -m jaxmetrics.bench._brax_train --env ant --num-envs 4096 --timesteps 10000000
+--variants brax,report_full,report_mean --runs 2 --commit $(git rev-parse HEAD) --out F.json`
+
+Runs `brax.training.agents.ppo.train` on `brax.envs.get_environment(env, backend="mjx")`
+with Brax's tuned PPO settings for `ant` (Brax's README), the same seed for every variant:
+
+- `brax`: Brax's own wrapper (no `wrap_env_fn`).
+- `report_full`: `jaxmetrics.brax.wrap` with a `Logger` (TensorBoard), reporting by itself
+  from inside the trainer; 11 terms for `ant` (episode return and length, and every
+  `State.metrics` entry but `forward_reward`, which duplicates `reward_forward`) with the
+  bench's "full" statistics (`_workload.pattern_stats`: mean/std/min/max/sum/count, EMA,
+  window(100) with percentiles, histograms), default `report_every`.
+- `report_mean`: the same terms, mean + count only.
+- `report_all` (not run by default): every statistic on every term.
+
+Per run: the steady-state env steps per second between consecutive `progress_fn` calls
+(the first interval, which compiles the training epoch, left out; it includes Brax's
+evaluation), Brax's own `training/sps` (the training epoch alone; its first epoch
+compiles), the wall time of `ppo.train`, and for the reporting variants each record's
+arrival time relative to the start of training (it shows reports arriving while training
+runs). Results are written after every run, so a run cut short keeps the finished ones.
+`--merge A.json B.json --out C.json` joins the runs of several outputs.
+"""
+
+import argparse
+import functools
+import json
+import os
+import platform
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from importlib import metadata
+from typing import Any
+
+import jax
+import jax._src.api
+
+import jaxmetrics as jm
+import jaxmetrics.brax as jmb  # before Brax (quiet imports)
+
+from ._workload import pattern_stats
+
+VARIANTS = ("brax", "report_full", "report_mean", "report_all")
+
+# Brax's tuned PPO settings for ant (brax README, "ant"); num_timesteps comes from the CLI.
+ANT_PPO = {
+    "num_evals": 10,
+    "reward_scaling": 10,
+    "episode_length": 1000,
+    "normalize_observations": True,
+    "action_repeat": 1,
+    "unroll_length": 5,
+    "num_minibatches": 32,
+    "num_updates_per_batch": 4,
+    "discounting": 0.97,
+    "learning_rate": 3e-4,
+    "entropy_cost": 1e-2,
+    "num_envs": 4096,
+    "batch_size": 2048,
+    "seed": 1,
+}
+
+# Duplicates of another State.metrics entry (Brax's ant: forward_reward == reward_forward).
+DUPLICATES = {"forward_reward": "reward_forward"}
+
+# Histogram ranges of the terms the pattern gives a histogram (others: (0, 1)).
+HIST_RANGES = {
+    "episode_return": (-1000.0, 8000.0),
+    "reward_ctrl": (-4000.0, 0.0),
+    "x_velocity": (-5.0, 5.0),
+    "y_velocity": (-5.0, 5.0),
+}
+
+
+def _reduction(name: str) -> str:
+    """The episode reduction of a `State.metrics` entry, from its name."""
+    if "reward" in name or "cost" in name:
+        return "sum"
+    if "position" in name or "distance" in name:
+        return "last"
+    return "mean"
+
+
+def state_metric_names(env: Any) -> list[str]:
+    """The env's `State.metrics` names (from shapes alone), duplicates left out."""
+    shapes = jax.eval_shape(env.reset, jax.ShapeDtypeStruct((2,), jax.numpy.uint32))
+    names = list(shapes.metrics)
+    return [n for n in names if not (n in DUPLICATES and DUPLICATES[n] in names)]
+
+
+def build_spec(env: Any, features: str) -> tuple[jm.Metrics, dict[str, Any]]:
+    """The spec of a reporting variant and a description of it (term -> reduce, stats)."""
+    names = ["episode_return", "episode_length", *state_metric_names(env)]
+    terms: dict[str, jm.Term] = {}
+    desc: dict[str, Any] = {}
+    for i, name in enumerate(names):
+        hist = HIST_RANGES.get(name, (0.0, 1.0))
+        if features == "mean":
+            stats: tuple[Any, ...] = ("mean", "count")
+        elif features == "full":
+            stats = pattern_stats(i, 100, hist)
+        elif features == "all":
+            stats = (
+                "mean", "std", "min", "max", "sum", "count", jm.ema(0.01),
+                jm.window(100, percentiles=(50, 90)), jm.histogram(20, hist),
+            )  # fmt: skip
+        else:
+            raise ValueError(f"unknown features {features!r}")
+        if name == "episode_return":
+            term = jmb.episode_return(stats=stats)
+        elif name == "episode_length":
+            term = jmb.episode_length(stats=stats)
+        else:
+            term = jmb.state_metrics({name: _reduction(name)}, stats=stats)[name]
+        terms[name] = term
+        desc[name] = {"reduce": term.reduce, "stats": [repr(s) for s in stats]}
+    return jm.Metrics(terms=terms), desc
+
+
+class ArrivalWriter:
+    """A writer that notes when each record reaches the writer thread (and its step)."""
+
+    def __init__(self, t0: float):
+        self.t0 = t0
+        self.arrivals: list[dict[str, Any]] = []
+
+    def open(self, tags: Sequence[Any]) -> None:
+        pass
+
+    def write(self, record: Any) -> None:
+        now = time.time()
+        ret = {
+            k: v
+            for k, v in record.scalars.items()
+            if k.startswith("Episode_Metrics/episode_return")
+        }
+        self.arrivals.append(
+            {
+                "step": int(record.step),
+                "emitted_s": round(record.wall_time - self.t0, 3),  # the callback ran
+                "written_s": round(now - self.t0, 3),  # the writer thread got it
+                "episodes": int(ret.get("Episode_Metrics/episode_return/count", 0)),
+                "episode_return": ret.get("Episode_Metrics/episode_return"),
+            }
+        )
+
+    def close(self) -> None:
+        pass
+
+
+class CompileCounter:
+    """Backend compiles seen while it is active: when each ended (seconds after `t0`) and
+    how long it took."""
+
+    EVENT = "/jax/core/compile/backend_compile_duration"
+
+    def __init__(self):
+        self.active = False
+        self.t0 = 0.0
+        self.events: list[tuple[float, float]] = []
+        jax.monitoring.register_event_duration_secs_listener(self._on)
+
+    def start(self, t0: float) -> None:
+        self.t0, self.events, self.active = t0, [], True
+
+    def _on(self, event: str, duration: float, **_: Any) -> None:
+        if self.active and event == self.EVENT:
+            self.events.append((time.time() - self.t0, float(duration)))
+
+
+def _dir_bytes(path: str) -> int:
+    return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
+
+
+def _steady(progress: list[dict[str, Any]], compiles: list[tuple[float, float]]) -> dict:
+    """Env steps per second between progress calls (the initial eval at step 0, then one
+    per training epoch + eval), over the intervals in which nothing compiled.
+
+    Brax compiles its training epoch in the first interval and, on this JAX, once more in
+    the second (the first epoch's outputs come back with other types or layouts than
+    the inputs it was traced with): `steady_sps` leaves out every interval in which a
+    backend compile ended; `steady_sps_excl_first` leaves out the first interval only."""
+    out: dict[str, Any] = {"intervals_sps": [], "compiling_intervals": []}
+    for i, (a, b) in enumerate(zip(progress, progress[1:])):
+        out["intervals_sps"].append((b["step"] - a["step"]) / (b["t_s"] - a["t_s"]))
+        n = sum(a["t_s"] < t <= b["t_s"] for t, _ in compiles)
+        if n:
+            out["compiling_intervals"].append(i)
+    if compiles and progress:
+        out["compiles_after_last_progress"] = sum(t > progress[-1]["t_s"] for t, _ in compiles)
+    clean = [
+        (a, b)
+        for i, (a, b) in enumerate(zip(progress, progress[1:]))
+        if i not in out["compiling_intervals"]
+    ]
+    out["steady_intervals"] = len(clean)
+    out["steady_sps"] = (
+        sum(b["step"] - a["step"] for a, b in clean) / sum(b["t_s"] - a["t_s"] for a, b in clean)
+        if clean
+        else None
+    )
+    later = progress[1:]
+    out["steady_sps_excl_first"] = (
+        (later[-1]["step"] - later[0]["step"]) / (later[-1]["t_s"] - later[0]["t_s"])
+        if len(later) >= 2
+        else None
+    )
+    # Brax's training/sps of epoch k comes with progress call k (k >= 1): interval k-1.
+    epochs = [
+        (i - 1, p["training_sps"])
+        for i, p in enumerate(progress)
+        if p.get("training_sps") is not None
+    ]
+    out["brax_training_sps_all"] = [sps for _, sps in epochs]
+    kept = [sps for i, sps in epochs if i not in out["compiling_intervals"]]
+    if kept:
+        # Steps per epoch are equal: the steady rate is the harmonic mean of the epochs'.
+        out["brax_training_sps"] = len(kept) / sum(1.0 / x for x in kept)
+        out["brax_training_sps_median"] = statistics.median(kept)
+    else:
+        out["brax_training_sps"] = out["brax_training_sps_median"] = None
+    return out
+
+
+def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCounter) -> dict:
+    """One `ppo.train` of `variant`; its timings and records."""
+    from brax import envs
+    from brax.training.agents.ppo import train as ppo
+
+    env = envs.get_environment(args.env, backend=args.backend)
+    settings = dict(ANT_PPO)
+    for key in ("num_envs", "batch_size", "num_minibatches", "episode_length", "num_evals"):
+        if getattr(args, key) is not None:
+            settings[key] = getattr(args, key)
+    settings["num_timesteps"] = args.timesteps
+    extra: dict[str, Any] = {"num_eval_envs": args.num_eval_envs}
+    result: dict[str, Any] = {"variant": variant, "run": run}
+    logger = writer = logdir = None
+    progress: list[dict[str, Any]] = []
+
+    if variant != "brax":
+        features = variant.removeprefix("report_")
+        metrics, desc = build_spec(env, features)
+        result["terms"] = len(desc)
+        result["spec"] = desc
+        logdir = tempfile.mkdtemp(prefix=f"brax_train_{variant}_")
+    t0 = time.time()
+    counter.start(t0)
+    if variant != "brax":
+        writer = ArrivalWriter(t0)
+        logger = jm.Logger(metrics, [jm.TensorBoardWriter(logdir), writer])
+        extra["wrap_env_fn"] = functools.partial(
+            jmb.wrap, metrics=metrics, logger=logger, report_every=args.report_every
+        )
+
+    def progress_fn(step: int, m: dict[str, Any]) -> None:
+        now = time.time() - t0
+        sps = m.get("training/sps")
+        ret = m.get("eval/episode_reward")
+        progress.append(
+            {
+                "step": int(step),
+                "t_s": round(now, 3),
+                "training_sps": None if sps is None else float(sps),
+                "eval_episode_reward": None if ret is None else float(ret),
+            }
+        )
+        print(
+            f"  [{variant} run {run}] t={now:7.1f}s step={int(step):>10}"
+            + ("" if sps is None else f" training/sps={float(sps):,.0f}")
+            + ("" if ret is None else f" eval_return={float(ret):.1f}"),
+            flush=True,
+        )
+
+    try:
+        ppo.train(environment=env, progress_fn=progress_fn, **settings, **extra)
+        t_train = time.time() - t0
+    finally:
+        counter.active = False
+        if logger is not None:
+            t_close0 = time.time()
+            logger.close()
+            result["logger_close_s"] = round(time.time() - t_close0, 3)
+    result.update(
+        wall_s=round(t_train, 3),
+        compiles=len(counter.events),
+        compile_s=round(sum(d for _, d in counter.events), 2),
+        compile_events=[(round(t, 2), round(d, 2)) for t, d in counter.events],
+        progress=progress,
+        **_steady(progress, counter.events),
+    )
+    if writer is not None:
+        arr = writer.arrivals
+        result.update(
+            records=len(arr),
+            logger_emit_calls=logger.emit_calls,
+            first_record_s=arr[0]["written_s"] if arr else None,
+            last_record_s=arr[-1]["written_s"] if arr else None,
+            records_before_train_end=sum(a["written_s"] <= t_train for a in arr),
+            arrivals=arr,
+            tensorboard_bytes=_dir_bytes(logdir),
+        )
+        shutil.rmtree(logdir, ignore_errors=True)
+    result["settings"] = {k: v for k, v in settings.items()} | {
+        "num_eval_envs": args.num_eval_envs,
+        "report_every": args.report_every,
+    }
+    return result
+
+
+def _version(name: str) -> str | None:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return None
+
+
+def environment(commit: str | None) -> dict[str, Any]:
+    dev = jax.devices()[0]
+    return {
+        "device": getattr(dev, "device_kind", str(dev)),
+        "platform": dev.platform,
+        "device_count": jax.device_count(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "jaxlib": _version("jaxlib"),
+        "brax": _version("brax"),
+        "mujoco": _version("mujoco"),
+        "mujoco_mjx": _version("mujoco-mjx"),
+        "commit": commit,
+        "host": platform.node(),
+    }
+
+
+def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per variant: mean steady sps and Brax's sps over runs; overhead vs `brax` in %
+    (time per step: `brax_sps / variant_sps - 1`)."""
+    out: dict[str, Any] = {}
+    for v in dict.fromkeys(r["variant"] for r in runs):
+        rs = [r for r in runs if r["variant"] == v]
+        steady = [r["steady_sps"] for r in rs if r.get("steady_sps")]
+        brax = [r["brax_training_sps"] for r in rs if r.get("brax_training_sps")]
+        out[v] = {
+            "runs": len(rs),
+            "steady_sps_mean": statistics.mean(steady) if steady else None,
+            "brax_training_sps_mean": statistics.mean(brax) if brax else None,
+            "wall_s_mean": statistics.mean(r["wall_s"] for r in rs),
+        }
+    base = out.get("brax")
+    if base:
+        for s in out.values():
+            for key, name in (("steady_sps_mean", "overhead_steady_pct"),
+                              ("brax_training_sps_mean", "overhead_brax_sps_pct"),
+                              ("wall_s_mean", "overhead_wall_pct")):  # fmt: skip
+                b, x = base[key], s[key]
+                if b and x:
+                    s[name] = 100.0 * ((x / b) if key == "wall_s_mean" else (b / x)) - 100.0
+    return out
+
+
+def table(runs: list[dict[str, Any]], summary: dict[str, Any]) -> str:
+    def f(x: Any, fmt: str = ",.0f") -> str:
+        return "-" if x is None else format(x, fmt)
+
+    lines = [
+        "| variant | run | steady sps | sps excl. 1st interval | Brax training/sps | wall s "
+        "| compiles | records | first/last record s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in runs:
+        rec = "-"
+        if "records" in r:
+            rec = f"{f(r['first_record_s'], '.1f')} / {f(r['last_record_s'], '.1f')}"
+        lines.append(
+            f"| {r['variant']} | {r['run']} | {f(r['steady_sps'])} | "
+            f"{f(r['steady_sps_excl_first'])} | "
+            f"{f(r['brax_training_sps'])} | "
+            f"{r['wall_s']:.1f} | {r['compiles']} | {r.get('records', '-')} | {rec} |"
+        )
+    lines += [
+        "",
+        "| variant | runs | steady sps | overhead | Brax sps | overhead | wall s | overhead |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for v, s in summary.items():
+        lines.append(
+            f"| {v} | {s['runs']} | {f(s['steady_sps_mean'])} | "
+            f"{f(s.get('overhead_steady_pct'), '+.2f')}% | "
+            f"{f(s['brax_training_sps_mean'])} | {f(s.get('overhead_brax_sps_pct'), '+.2f')}% | "
+            f"{s['wall_s_mean']:.1f} | {f(s.get('overhead_wall_pct'), '+.2f')}% |"
+        )
+    return "\n".join(lines)
+
+
+def _write(path: str, doc: dict[str, Any]) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "w") as fh:
+        json.dump(doc, fh, indent=1, default=float)
+    os.replace(tmp, path)
+
+
+def _device_put_replicated(x: Any, devices: Sequence[Any]) -> Any:
+    """`jax.device_put_replicated` where JAX no longer has it: a leading axis of one copy
+    per device, split over the devices (what `pmap` takes)."""
+    import numpy as np
+
+    sharding = jax.sharding.NamedSharding(
+        jax.sharding.Mesh(np.array(devices), ("d",)), jax.sharding.PartitionSpec("d")
+    )
+
+    def put(a: Any) -> jax.Array:
+        a = jax.numpy.asarray(a)
+        return jax.device_put(jax.numpy.broadcast_to(a, (len(devices), *a.shape)), sharding)
+
+    return jax.tree.map(put, x)
+
+
+def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(
+        prog="python -m jaxmetrics.bench._brax_train", description=__doc__.split("\n")[0]
+    )
+    p.add_argument("--env", default="ant")
+    p.add_argument("--backend", default="mjx")
+    p.add_argument("--num-envs", type=int, default=None, help="default 4096 (Brax's ant)")
+    p.add_argument("--timesteps", type=int, default=10_000_000)
+    p.add_argument("--batch-size", type=int, default=None, help="default 2048")
+    p.add_argument("--num-minibatches", type=int, default=None, help="default 32")
+    p.add_argument("--episode-length", type=int, default=None, help="default 1000")
+    p.add_argument("--num-evals", type=int, default=None, help="default 10")
+    p.add_argument("--num-eval-envs", type=int, default=128, help="Brax's default 128")
+    p.add_argument("--report-every", type=int, default=None, help="default: the wrapper's")
+    p.add_argument("--variants", default="brax,report_full,report_mean")
+    p.add_argument("--runs", type=int, default=1)
+    p.add_argument(
+        "--first-run", type=int, default=1, help="number of the first run (when split over calls)"
+    )
+    p.add_argument("--commit", default=None, help="git commit of the tree (`git rev-parse HEAD`)")
+    p.add_argument("--out", default=None)
+    p.add_argument("--explain-cache-misses", action="store_true", help="log why JAX recompiles")
+    p.add_argument("--merge", nargs="+", default=None, help="join these outputs' runs into --out")
+    return p.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    args = _parse(argv)
+    if args.merge:
+        docs = [json.load(open(p)) for p in args.merge]
+        doc = dict(docs[0])
+        doc["runs"] = [r for d in docs for r in d["runs"]]
+        doc["merged_from"] = [{"file": os.path.basename(p), "environment": d["environment"],
+                               "args": d["args"]} for p, d in zip(args.merge, docs)]  # fmt: skip
+        doc["summary"] = summarize(doc["runs"])
+        print(table(doc["runs"], doc["summary"]))
+        if args.out:
+            _write(args.out, doc)
+        return
+    variants = [v for v in args.variants.split(",") if v]
+    for v in variants:
+        if v not in VARIANTS:
+            sys.exit(f"unknown variant {v!r}; choose from {', '.join(VARIANTS)}")
+    # Brax 0.14.2's ppo.train calls jax.device_put_replicated, gone from JAX 0.10's namespace.
+    if not hasattr(jax, "device_put_replicated"):
+        jax.device_put_replicated = getattr(
+            jax._src.api, "device_put_replicated", _device_put_replicated
+        )
+    if args.explain_cache_misses:
+        jax.config.update("jax_explain_cache_misses", True)
+    counter = CompileCounter()
+    doc: dict[str, Any] = {
+        "benchmark": "brax_ppo_train",
+        "description": __doc__,
+        "environment": environment(args.commit),
+        "args": vars(args),
+        "runs": [],
+    }
+    print(json.dumps(doc["environment"]), flush=True)
+    # Runs interleave the variants (run 1 of each, then run 2 of each) against drift.
+    for run in range(args.first_run, args.first_run + args.runs):
+        for v in variants:
+            print(f"== {v} run {run}", flush=True)
+            r = run_one(v, run, args, counter)
+            doc["runs"].append(r)
+            if "spec" in r:
+                doc.setdefault("specs", {})[v] = r.pop("spec")
+            doc["summary"] = summarize(doc["runs"])
+            print(
+                f"== {v} run {run}: wall {r['wall_s']:.1f}s steady {r['steady_sps']} "
+                f"brax {r['brax_training_sps']} compiles {r['compiles']} "
+                f"records {r.get('records')}",
+                flush=True,
+            )
+            if args.out:
+                _write(args.out, doc)
+    print(table(doc["runs"], doc["summary"]))
+
+
+if __name__ == "__main__":
+    main()
