@@ -416,7 +416,8 @@ class Logger(AbstractContextManager):
         self._wrapper_raw: list[int | None] = [None] * self.runs
         self._wrapper_step = [0] * self.runs
         self._wrapper_offset = [0] * self.runs
-        self._restarts: list[str] = []
+        # Written records worth a word (steps that went back): warnings, not errors.
+        self._notices: list[str] = []
         self._env_steps_tag = _tags.tag(metrics._counter_prefix, "env_steps", "total")
         self._compute = compute
         self._layout_id = _history.layout_id(type(metrics._spec)._fields[0], include_running)
@@ -711,7 +712,7 @@ class Logger(AbstractContextManager):
         last = self._wrapper_raw[run]
         if last is not None and raw <= last:
             self._wrapper_offset[run] = self._wrapper_step[run]
-            self._restarts.append(
+            self._notices.append(
                 f"run {run}: the envs were reset after step {self._wrapper_step[run]} (e.g. "
                 "Brax's num_resets_per_eval): windows and EMAs restarted, and episodes ended "
                 "since that record were not reported; records go on from that step"
@@ -929,13 +930,12 @@ class Logger(AbstractContextManager):
             )
         last = self._written_step[run]
         if last is not None and step < last:
+            # The record is written (nothing is lost); charts draw back over themselves.
             with self._lock:
-                self._errors.append(
-                    ValueError(
-                        f"run {run}: step {step} written after step {last}; steps must not "
-                        "decrease (charts would draw back over themselves). To resume a run "
-                        "from an earlier step, create its writers with purge_step=<step>."
-                    )
+                self._notices.append(
+                    f"run {run}: step {step} written after step {last}; steps should not "
+                    "decrease (charts draw back over themselves). To resume a run from an "
+                    "earlier step, create its writers with purge_step=<step>."
                 )
         self._written_step[run] = step
         values = [(self._infos[tag], v) for tag, v in host().items()]
@@ -1071,8 +1071,8 @@ class Logger(AbstractContextManager):
         """Applies the non-finite policy to earlier reports on the caller's thread (warns
         for "skip", raises `NonFiniteError` for "raise") and raises what was deferred."""
         with self._lock:
-            restarts, self._restarts = self._restarts, []
-        for message in restarts:
+            notices, self._notices = self._notices, []
+        for message in notices:
             _warn_at_caller(message)
         raising: list[str] = []
         for check in pending:
