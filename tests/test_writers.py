@@ -376,3 +376,36 @@ def test_tensorboard_writer_rejects_bad_options_at_creation(tmp_path):
     with pytest.raises(TypeError, match="std_bands must be a bool"):
         jm.TensorBoardWriter(tmp_path, std_bands="yes")
     assert os.listdir(tmp_path) == []  # the event file is created by open(), not here
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        b'{"lr": 0.1}',  # another program's JSON, no final newline
+        b'{"lr": 0.1}\n',
+        b"notes\nlast line without newline",
+        b'{"step":1,"wall_time":2.0,"scalars":{},"histograms":{},"windows":{}}',  # whole, unterminated
+        b'{"step":1,"wall_time":2.0,"scalars":{},"histograms":{},"windows":{}}\n{"a": 1}\n',
+    ],
+)
+def test_jsonl_writer_refuses_a_file_that_is_not_its_own_and_touches_nothing(tmp_path, content):
+    path = tmp_path / "config.json"
+    path.write_bytes(content)
+    os.chmod(path, 0o600)
+    with pytest.raises(ValueError, match=r"config.json.*not a JsonlWriter record.*left untouched"):
+        jm.JsonlWriter(path)
+    assert path.read_bytes() == content
+    assert os.stat(path).st_mode & 0o777 == 0o600
+
+
+def test_jsonl_writer_repairs_a_crash_cut_record_keeping_mode_and_symlink(tmp_path):
+    record = b'{"step":1,"wall_time":2.0,"scalars":{"Train/x":1.0},"histograms":{},"windows":{}}\n'
+    real = tmp_path / "real.jsonl"
+    real.write_bytes(record + b'{"step":2,"wall_time":3.0,"scal')  # cut by a crash
+    os.chmod(real, 0o640)
+    link = tmp_path / "link.jsonl"
+    os.symlink(real, link)
+    jm.JsonlWriter(link).close()
+    assert os.path.islink(link) and os.readlink(link) == str(real)
+    assert real.read_bytes() == record
+    assert os.stat(real).st_mode & 0o777 == 0o640

@@ -41,11 +41,14 @@ class JsonlWriter:
     The file only ever holds whole lines: each is written and fsync'ed on its own, and a
     write that fails part-way (a full disk) is cut back before the error reaches the
     `Logger`, so later lines start on a line of their own. Opening an existing file
-    drops a partial last line (left by a crash: never acknowledged by `Logger.wait`).
+    drops a partial last line (a record cut by a crash: never acknowledged by
+    `Logger.wait`), keeping the file's mode and, for a symlinked path, the link. A file
+    holding anything else (another program's JSON, text) is refused and left untouched.
 
     Args:
       path: the file; its directory is created if missing. Checked here: an invalid or
-        unwritable path raises `ValueError` naming it.
+        unwritable path, or a file that is not this writer's JSON lines, raises
+        `ValueError` naming it.
       purge_step: when resuming a run from a checkpoint taken at an earlier step: lines
         with a step >= `purge_step` are dropped from the existing file (rewritten
         atomically), so the resumed run's records replace them instead of following
@@ -76,6 +79,8 @@ class JsonlWriter:
                 os.makedirs(parent, exist_ok=True)
             _repair(p, purge_step)
             self._file = AppendFile(p)
+        except _ForeignFile:
+            raise
         except (OSError, ValueError) as e:
             raise ValueError(
                 f"JsonlWriter: cannot open {p!r} for appending: {e}. Pass a writable file path."
@@ -94,32 +99,62 @@ class JsonlWriter:
         self._file.close()
 
 
+_KEYS = ("step", "wall_time", "scalars", "histograms", "windows")
+_HEAD = b'{"step":'  # how every line this writer writes starts (see `write`)
+
+
+class _ForeignFile(ValueError):
+    """The existing file holds something other than this writer's records."""
+
+
+def _is_record(line: bytes) -> bool:
+    try:
+        obj = json.loads(line)
+    except ValueError:
+        return False
+    return isinstance(obj, dict) and tuple(obj) == _KEYS
+
+
 def _repair(path: str, purge_step: int | None) -> None:
-    """Drops a partial last line, and with `purge_step` every line from that step on."""
+    """Drops a partial last line (a record cut by a crash), and with `purge_step` every
+    line from that step on. A file that holds anything but this writer's records is left
+    untouched and refused; a repair keeps the file's mode, and a symlinked path its link."""
     try:
         with open(path, "rb") as f:
             data = f.read()
     except FileNotFoundError:
         return
     whole = data[: data.rfind(b"\n") + 1]
-    keep = whole
+    lines = whole.splitlines(keepends=True)
+    for i, line in enumerate(lines):
+        if not _is_record(line):
+            raise _ForeignFile(
+                f"JsonlWriter: {path!r} exists and its line {i + 1} is not a JsonlWriter "
+                "record; the file was left untouched. Pass the path of a new file or of "
+                "this writer's own JSON lines."
+            )
+    tail = data[len(whole) :]
+    ours = tail.startswith(_HEAD) or _HEAD.startswith(tail)  # cut after or inside its head
+    if tail and (not ours or _is_record(tail)):
+        # A whole record without its newline was never cut by this writer (it writes
+        # the line and its newline in one call): someone else's text.
+        raise _ForeignFile(
+            f"JsonlWriter: {path!r} exists and ends in an unterminated line that is not a "
+            "JsonlWriter record cut short; the file was left untouched. Pass the path of a "
+            "new file or of this writer's own JSON lines."
+        )
     if purge_step is not None:
-        lines = whole.splitlines(keepends=True)
-        for i, line in enumerate(lines):
-            try:
-                step = json.loads(line)["step"]
-            except (ValueError, KeyError, TypeError):
-                raise ValueError(
-                    f"line {i + 1} is not a JsonlWriter record, so purge_step cannot apply"
-                ) from None
-            if step >= purge_step:
-                lines[i] = b""
-        keep = b"".join(lines)
+        lines = [line for line in lines if json.loads(line)["step"] < purge_step]
+    keep = b"".join(lines)
     if keep == data:
         return
-    tmp = f"{path}.{os.getpid()}.tmp"
-    with open(tmp, "wb") as f:
+    target = os.path.realpath(path)  # replace the file a symlink points to, not the link
+    mode = os.stat(target).st_mode & 0o7777
+    tmp = f"{target}.{os.getpid()}.tmp"
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    with os.fdopen(fd, "wb") as f:
         f.write(keep)
         f.flush()
         os.fsync(f.fileno())
-    os.replace(tmp, path)
+    os.chmod(tmp, mode)  # the umask narrowed the mode os.open was given
+    os.replace(tmp, target)
