@@ -33,6 +33,7 @@ from ._layout import mesh_of, placed, replicated
 from ._metrics import Metrics
 from ._report import Record, RecordBuilder, Writer, check_writers, derived_tags
 from ._seeds import SeedsSummary, summary_tags
+from ._spec import check_name
 from ._state import MetricsState
 from ._tags import TagInfo
 from ._timer import Timers
@@ -357,10 +358,7 @@ class Logger(AbstractContextManager):
             raise ValueError(f"Logger: max_pending must be an int >= 1, got {max_pending!r}.")
         if timeout is not None and (not is_number(timeout) or not timeout > 0):
             raise ValueError(f"Logger: timeout must be seconds > 0 or None, got {timeout!r}.")
-        if not isinstance(timer_prefix, str) or not timer_prefix:
-            raise ValueError(
-                f"Logger: timer_prefix must be a non-empty string, got {timer_prefix!r}."
-            )
+        check_name(timer_prefix, "Logger(timer_prefix=...)")
         self.metrics = metrics
         self.runs = int(runs)
         self.tags: tuple[TagInfo, ...] = _tag_table(metrics, include_running)
@@ -541,8 +539,7 @@ class Logger(AbstractContextManager):
         JAX dispatches asynchronously: to time device work, block on its result inside
         the block (`jax.block_until_ready`).
         """
-        if not isinstance(name, str) or not name:
-            raise ValueError(f"Logger.timer: name must be a non-empty string, got {name!r}.")
+        check_name(name, "Logger.timer")
         tag = _tags.timer(self._timer_prefix, name)
         if tag not in self._timer_tags:
             _tags.check_unique(

@@ -276,6 +276,12 @@ class Metrics:
         # (MetricsState.ended).
         self._shard_counters = tuple(c for c in _SHARD_COUNTERS if c in builtin)
         self._stored_counters = tuple(c for c in self.counter_names if c not in _SHARD_COUNTERS)
+        for arg, prefix in (
+            ("episode_prefix", episode_prefix),
+            ("logged_prefix", logged_prefix),
+            ("counter_prefix", counter_prefix),
+        ):
+            check_name(prefix, f"Metrics({arg}=...)")
         self.prefixes = {"episode": episode_prefix, "logged": logged_prefix}
         self._counter_prefix = counter_prefix
         self.dtype = dt

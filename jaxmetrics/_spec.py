@@ -337,8 +337,21 @@ def check_policy(policy: str, where: str) -> str:
 
 
 def check_name(name: Any, where: str) -> str:
+    """A metric, counter or group name: a non-empty string whose `/`-separated parts are
+    all non-empty and none is `.` or `..`. Tags are paths (`Episode_Metrics/<name>/std`):
+    MLflow refuses names that normalize to another path (`a//b`, `x/`, `a/./b`) and would
+    drop every record of the run at flush time; TensorBoard and W&B would group them
+    under a different path."""
     if not isinstance(name, str) or not name:
         raise ValueError(f"{where}: names must be non-empty strings, got {name!r}.")
+    bad = [p for p in name.split("/") if p in ("", ".", "..")]
+    if bad:
+        raise ValueError(
+            f"{where}: the name {name!r} has an empty, '.' or '..' part between slashes; "
+            "tags are paths, and MLflow refuses names that normalize to another path. Use "
+            f"{'/'.join(p for p in name.split('/') if p not in ('', '.', '..')) or 'x'!r} "
+            "or another name."
+        )
     return name
 
 

@@ -258,3 +258,20 @@ def test_nonfinite_policies_at_flush():
                 logger.flush(s, 3)
     assert "quiet" not in str(err.value)
     assert [r.step for r in memory.records] == [3]
+
+
+@pytest.mark.parametrize("name", ["a//b", "x/", "/x", "a/./b", "a/../b"])
+def test_names_that_are_not_clean_paths_are_refused_at_build_time(name):
+    # MLflow refuses tags that normalize to another path, at flush time, for every record.
+    with pytest.raises(ValueError, match=r"empty, '\.' or '\.\.' part between slashes"):
+        jm.Metrics(logged=[name])
+    with pytest.raises(ValueError, match=r"part between slashes"):
+        jm.Metrics(terms={name: jm.Term(lambda x: x)})
+    with pytest.raises(ValueError, match=r"part between slashes"):
+        jm.Metrics(logged=["ok"], counters=[name])
+    with pytest.raises(ValueError, match=r"Metrics\(logged_prefix=\.\.\.\).*part between slashes"):
+        jm.Metrics(logged=["ok"], logged_prefix=name)
+    logger = jm.Logger(jm.Metrics(logged=["ok"]), [])
+    with pytest.raises(ValueError, match=r"Logger.timer.*part between slashes"):
+        logger.timer(name)
+    logger.close()

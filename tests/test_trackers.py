@@ -371,3 +371,24 @@ def test_backends_are_imported_only_when_their_writer_is_created(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     assert out.returncode == 0, out.stderr
     assert out.stdout.split("\n")[:3] == ["[]", "['wandb']", "['wandb', 'mlflow']"]
+
+
+def test_mlflow_logs_the_good_metrics_of_a_record_with_a_refused_key(mlflow_uri):
+    # A key MLflow refuses (here from Brax's progress_fn, whose keys are Brax's) used to
+    # fail the whole log_batch: every metric of the record was lost.
+    from mlflow.tracking import MlflowClient
+
+    writer = jm.MLflowWriter("refused", tracking_uri=mlflow_uri)
+    writer.open([])
+    record = jm.Record(
+        step=3,
+        wall_time=1.0,
+        scalars={"Train/a": 1.5, "Brax/custom//thing": 2.0, "Train/b": 2.5},
+        histograms={},
+        windows={},
+    )
+    with pytest.raises(ValueError, match=r"refused 1 of the 3 metrics .* 'Brax/custom//thing'"):
+        writer.write(record)
+    writer.close()
+    logged = MlflowClient(mlflow_uri).get_run(writer.run_id).data.metrics
+    assert logged == {"Train/a": 1.5, "Train/b": 2.5}

@@ -193,8 +193,29 @@ class MLflowWriter:
             Metric(_tags.sanitize(tag), float(v), ms, record.step)
             for tag, v in record.scalars.items()
         ]
+        refused: list[str] = []
         for i in range(0, len(metrics), _BATCH):
-            self.client.log_batch(self.run_id, metrics=metrics[i : i + _BATCH])
+            batch = metrics[i : i + _BATCH]
+            try:
+                self.client.log_batch(self.run_id, metrics=batch)
+            except Exception:  # noqa: BLE001 (one refused key fails its whole batch)
+                refused += self._log_one_by_one(batch)
+        if refused:
+            raise ValueError(
+                f"MLflow refused {len(refused)} of the {len(metrics)} metrics of the record at "
+                f"step {record.step} (the others are logged): " + "; ".join(refused)
+            )
+
+    def _log_one_by_one(self, batch: Sequence[Any]) -> list[str]:
+        """Logs a refused batch metric by metric, so that one bad key (or value) loses
+        only itself; returns what was refused, and why."""
+        refused = []
+        for metric in batch:
+            try:
+                self.client.log_batch(self.run_id, metrics=[metric])
+            except Exception as e:  # noqa: BLE001 (named in the writer's error)
+                refused.append(f"{metric.key!r}: {e}")
+        return refused
 
     def close(self) -> None:
         """Sets the run FINISHED (if created); with `per_seed`, the parent too once every
