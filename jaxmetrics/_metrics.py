@@ -481,19 +481,40 @@ class Metrics:
 
     def from_checkpoint(self, saved: MetricsState, target: MetricsState) -> MetricsState:
         """A state restored from `to_checkpoint`'s tree: its None leaves become `target`'s
-        zero-size arrays (`target`: `init` with the same `num_envs` and sharding)."""
+        zero-size arrays (`target`: `init` with the same `num_envs` and sharding).
+
+        Restore the checkpoint with its target (orbax: `ckpt.restore(path,
+        metrics.to_checkpoint(target))`), so that it comes back as a MetricsState; a
+        tree of another structure (orbax's target-less restore gives plain dicts), shape
+        or dtype is refused here, before any of it is used.
+        """
         target = self._check_state(target, "from_checkpoint")
-        kept = jax.tree.leaves(saved)
-        it = iter(kept)
-        leaves = [x if x.size == 0 else next(it) for x in jax.tree.leaves(target)]
-        if next(it, None) is not None or len(leaves) != len(jax.tree.leaves(target)):
+        want = self.to_checkpoint(target)
+        if not isinstance(saved, MetricsState) or (
+            jax.tree.structure(saved) != jax.tree.structure(want)
+        ):
             raise ValueError(
-                "from_checkpoint: the saved tree does not match `target`; pass init() of the "
-                "spec, num_envs and sharding the checkpoint was made with."
+                f"from_checkpoint: the saved tree ({type(saved).__name__}) is not the "
+                "MetricsState that to_checkpoint(target) gives. Restore the checkpoint with "
+                "its target, e.g. orbax's ckpt.restore(path, metrics.to_checkpoint("
+                "metrics.init(num_envs))), with the spec, num_envs and sharding it was "
+                "saved with."
             )
-        return self._check_state(
-            jax.tree.unflatten(jax.tree.structure(target), leaves), "from_checkpoint"
-        )
+        for path, x, y in zip(
+            jax.tree_util.tree_leaves_with_path(saved),
+            jax.tree.leaves(saved),
+            jax.tree.leaves(want),
+        ):
+            if jnp.shape(x) != y.shape or jnp.result_type(x) != y.dtype:
+                where = jax.tree_util.keystr(path[0])
+                raise ValueError(
+                    f"from_checkpoint: {where} is {jnp.result_type(x)}{list(jnp.shape(x))}, "
+                    f"but the target has {y.dtype}{list(y.shape)}: pass init() of the spec, "
+                    "num_envs and sharding the checkpoint was made with."
+                )
+        it = iter(jax.tree.leaves(saved))
+        leaves = [x if x.size == 0 else next(it) for x in jax.tree.leaves(target)]
+        return jax.tree.unflatten(jax.tree.structure(target), leaves)
 
     def empty(self) -> MetricsState:
         """The identity of `merge`: a state of zero envs with nothing recorded."""

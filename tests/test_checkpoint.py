@@ -131,3 +131,24 @@ def test_the_spec_identity_is_the_same_in_every_process():
         )
         seen.add(out.stdout.strip().splitlines()[-1])
     assert len(seen) == 1, seen
+
+
+def test_a_restore_without_target_or_of_another_shape_is_refused_at_once(tmp_path):
+    # orbax's restore without a target gives plain dicts; from_checkpoint reordered their
+    # leaves and failed later with TypeError, IndexError or StopIteration.
+    m = spec()
+    xs, dones = data()
+    state = run(m, m.init(E), xs, dones)
+    with ocp.StandardCheckpointer() as ckpt:
+        ckpt.save(tmp_path / "ckpt", m.to_checkpoint(state))
+        ckpt.wait_until_finished()
+        targetless = ckpt.restore(tmp_path / "ckpt")
+    with pytest.raises(ValueError, match=r"\(dict\) is not the MetricsState.*with its target"):
+        m.from_checkpoint(targetless, m.init(E))
+    # Saved with 8 envs, restored into a target of 4.
+    with pytest.raises(
+        ValueError, match=r"\.running\.\w+ is \w+\[\d+, 8\], but the target has \w+\[\d+, 4\]"
+    ):
+        m.from_checkpoint(m.to_checkpoint(state), m.init(E // 2))
+    restored = m.from_checkpoint(m.to_checkpoint(state), m.init(E))
+    assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), restored, state))
