@@ -14,3 +14,10 @@ def kahan_add(s: jax.Array, c: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.
     t = s + y
     comp = (t - s) - y
     return t, jnp.where(jnp.isfinite(t), comp, jnp.zeros_like(comp))
+
+
+def two_sum(a: jax.Array, b: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Knuth's error-free sum: `(s, e)` with `s = fl(a + b)` and `s + e == a + b` exactly."""
+    s = a + b
+    bb = s - a
+    return s, (a - (s - bb)) + (b - bb)

@@ -226,3 +226,28 @@ def test_discounted_needs_its_parameter_and_names_the_output():
     s = m.update(s, jnp.ones(1), jnp.ones(1, bool))
     host = m.to_host(m.compute(s))
     assert (host["Episode_Metrics/two/a"], host["Episode_Metrics/two/b"]) == (1.0, 1.5)
+
+
+@pytest.mark.parametrize(
+    "gamma, length", [(0.995, 10_000), (0.995, 7_000), (0.999, 10_000), (0.9, 800)]
+)
+def test_a_sparse_terminal_reward_is_discounted_within_1e6_of_float64(gamma, length):
+    # One reward at the last step: gamma^t alone decides the return, at large |t ln gamma|.
+    # exp(float32(t) * float32(ln gamma)) was off by up to 2.6e-6 here.
+    envs = 2
+    xs = np.zeros((length, envs), np.float32)
+    xs[-1] = (1.0, 3.0)
+    dones = np.zeros((length, envs), bool)
+    dones[-1] = True
+    m = jm.Metrics(
+        terms={"r": jm.Term(lambda x: x, reduce=jm.discounted(gamma), stats=(jm.window(envs),))}
+    )
+
+    @jax.jit
+    def go(xs, dones):
+        body = lambda s, a: (m.update(s, *a), None)  # noqa: E731
+        return m.compute(jax.lax.scan(body, m.init(envs), (xs, dones))[0])
+
+    got = m.to_host(go(jnp.asarray(xs), jnp.asarray(dones)))["Episode_Metrics/r/window_values"]
+    want = np.asarray(discounted_returns(xs, dones, gamma), np.float64)
+    np.testing.assert_allclose(got, want, rtol=1e-6)
