@@ -357,13 +357,13 @@ def add_tallied(
     # With values in the period, shift == s.mean and mb (the batch's mean minus it) is
     # Chan's delta; without, the new mean is mb (frac == 1) and the old mean carries no
     # weight (na == 0).
-    mean = shift + mb * frac.astype(dt)
     m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + mb * mb * (na * frac).astype(dt))
     # Every [R] field below is a function of `k` (an empty batch leaves it as it is),
     # which lets XLA update them all in one multi-output kernel.
     some = k > 0
     total, total_c = kahan_add(s.sum, s.sum_c, bsum)
     total, total_c = jnp.where(some, total, s.sum), jnp.where(some, total_c, s.sum_c)
+    mean = _period_mean(total, total_c, n, shift + mb * frac.astype(dt))
     vmin = jnp.where(some, jnp.minimum(s.min, bmin), s.min)
     vmax = jnp.where(some, jnp.maximum(s.max, bmax), s.max)
 
@@ -879,6 +879,19 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
     return ema, off, wsum, n, tuple(rings)
 
 
+def _period_mean(total: jax.Array, total_c: jax.Array, n: jax.Array, chan: jax.Array) -> jax.Array:
+    """The period's mean: its compensated sum over its count, where that is finite, else
+    Chan's running mean (`chan`: an empty period's 0, or a sum that overflowed).
+
+    Chan's update `mean + delta * k / n` stops moving in float32 once `delta * k / n` is
+    below the mean's ulp (one value per step at counts past ~10^5 of data near 1e4), and
+    the variance then grows around the stale mean; the compensated sum holds the mean
+    to a few ulp at any count, and the deviations of the next batch are taken from it."""
+    dt = total.dtype
+    mean = (total - total_c) / jnp.maximum(n, 1).astype(dt)
+    return jnp.where((n > 0) & jnp.isfinite(mean), mean, chan)
+
+
 def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
     """Combines streams of disjoint workers that ran side by side: values of `b` arrive
     after `a`'s of the same step. Period statistics are exact (Chan for mean/std);
@@ -891,11 +904,12 @@ def merge(plan: StreamPlan, a: StreamState, b: StreamState) -> StreamState:
     both = (na > 0) & (nb > 0)
     delta = jnp.where(both, b.mean - a.mean, 0)
     # An empty side's mean carries no weight.
-    mean = jnp.where(both, a.mean + delta * frac.astype(dt), jnp.where(na > 0, a.mean, b.mean))
+    chan = jnp.where(both, a.mean + delta * frac.astype(dt), jnp.where(na > 0, a.mean, b.mean))
     m2, m2_c = kahan_add(a.m2, a.m2_c, b.m2 + delta * delta * (na * frac).astype(dt))
     m2, m2_c = kahan_add(m2, m2_c, -b.m2_c)
     total, total_c = kahan_add(a.sum, a.sum_c, b.sum)
     total, total_c = kahan_add(total, total_c, -b.sum_c)
+    mean = _period_mean(total, total_c, n, chan)
     ema, ema_off, ema_w, ema_n, ema_rings = _merge_ema(plan, a, b)
     windows = tuple(
         _widened(

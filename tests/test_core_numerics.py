@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import jaxmetrics as jm
 
@@ -150,3 +152,89 @@ def test_one_pass_and_two_pass_batch_moments_agree():
         # Welford chain per row (why the CPU takes two passes), ~1e-4 off here.
         np.testing.assert_allclose(one[5], two[5], rtol=1e-3)
         assert float(one[5][1]) == 0.0 == float(two[5][1])
+
+
+# ------------------------------------------------- the period mean at every arrival pattern
+
+_MOMENTS = jm.Metrics(logged={"x": jm.Logged(stats=("mean", "std", "count"))})
+
+
+@jax.jit
+def _feed_moments(state, block, mask):
+    """Logs block[t, :k_t] (the row's masked-in values) on step t."""
+
+    def body(s, inp):
+        v, m = inp
+        # A row with fewer values: its masked-out slots are left out as non-finite.
+        return _MOMENTS.log(s, {"x": jnp.where(m, v, jnp.nan)}), None
+
+    return jax.lax.scan(body, state, (block, mask))[0]
+
+
+def _moments_of(values: np.ndarray, per_step: int, total: int) -> dict:
+    """Feeds `total` float32 values, `per_step` a step, through `Metrics.log`."""
+    steps = -(-total // per_step)
+    block = np.zeros(steps * per_step, np.float32)
+    block[:total] = values
+    mask = np.arange(steps * per_step) < total
+    state = _MOMENTS.init(0)
+    # Blocks of at most ~2^20 values per call keep the compile small and shared.
+    rows = max(1, 2**20 // per_step)
+    for i in range(0, steps, rows):
+        state = _feed_moments(
+            state,
+            jnp.asarray(block.reshape(steps, per_step)[i : i + rows]),
+            jnp.asarray(mask.reshape(steps, per_step)[i : i + rows]),
+        )
+    with np.errstate(all="ignore"):
+        return _MOMENTS.to_host(_MOMENTS.compute(state))
+
+
+def _check_moments(values: np.ndarray, host: dict) -> None:
+    ref = values.astype(np.float64)
+    assert host["Train/x/count"] == len(ref)
+    mean, std = ref.mean(), ref.std()
+    assert abs(host["Train/x"] - mean) <= 1e-6 * abs(mean), (host["Train/x"], mean)
+    assert abs(host["Train/x/std"] - std) <= 1e-4 * std, (host["Train/x/std"], std)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    per_step=st.sampled_from([1, 7, 64, 4096]),
+    total=st.integers(1_000, 200_000),
+    offset=st.sampled_from([0.0, 1.0, 1e4, -1e4, 1e6]),
+    spread=st.sampled_from([1e-3, 1e-1, 1.0]),
+    drift=st.sampled_from([0.0, 0.5, 3.0]),
+    seed=st.integers(0, 2**16),
+)
+def test_period_mean_and_std_match_float64_at_every_arrival_pattern(
+    per_step, total, offset, spread, drift, seed
+):
+    # Spreads from 1e-3 of the offset (of 1 where the offset is 0); the mean drifts by
+    # `drift` spreads over the period.
+    scale = spread * (abs(offset) if offset else 1.0)
+    rng = np.random.default_rng(seed)
+    x = offset + scale * (rng.standard_normal(total) + drift * np.linspace(0, 1, total))
+    values = x.astype(np.float32)
+    if values.astype(np.float64).std() == 0:
+        return  # float32 rounded every value to one number: nothing to compare
+    _check_moments(values, _moments_of(values, per_step, total))
+
+
+def test_the_period_mean_keeps_moving_after_a_long_period():
+    # One value per step: 10,000 values of 1e4, then 10^6 of 1e4 + 0.5. The running mean
+    # used to stop at 10000.0 (true 10000.495) and the std read 0.4975 (true 0.0495).
+    values = np.full(1_010_000, 1e4 + 0.5, np.float32)
+    values[:10_000] = 1e4
+    _check_moments(values, _moments_of(values, 1, len(values)))
+
+
+def test_1e8_drifting_values_4096_a_step():
+    # The far end of the regime: 10^8 values, offset 1e4, spread 1e-3 of it, drifting by
+    # 3 spreads over the period.
+    total = 10**8
+    rng = np.random.default_rng(1)
+    values = (
+        1e4 + 10.0 * (rng.standard_normal(total, np.float32) + np.linspace(0, 3, total))
+    ).astype(np.float32)
+    _check_moments(values, _moments_of(values, 4096, total))
