@@ -854,10 +854,23 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
     )
     n = a.ema_n + jnp.minimum(b.ema_n, _INT32_MAX - a.ema_n)
     parts, rings = [], []
+    # Rows merged from both workers' histories: one sequential worker again.
+    sequential = jnp.zeros(a.ema.shape, jnp.bool_)
     for g, ra, rb in zip(plan.ema_groups, a.ema_rings, b.ema_rings):
         size = ra.size
         own = plan.stream_rows(g)
         rows = jnp.asarray(own, jnp.int32)
+        # A side holds its history where its ring has every value it has seen, or the
+        # newest `size`, and its EMA is one worker's, not an average of several. A state
+        # made without history (an unsharded `init`, its rings padded to concatenate)
+        # holds none: then both sides' EMAs are averaged, as for two such states.
+        held = (
+            (size > 0)
+            & (ra.filled >= jnp.minimum(a.ema_n[rows], size))
+            & (rb.filled >= jnp.minimum(b.ema_n[rows], size))
+            & (a.ema_w[rows] <= 1)
+            & (b.ema_w[rows] <= 1)
+        )
         sa, sb = _take(own, a.steps), _take(own, b.steps)
         vals, age, valid = _union(ra, sa, rb, sb, dt)
         # Exact when the rings hold every value either worker has seen.
@@ -870,12 +883,14 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
         dev = vals - off[rows][:, None]
         new = jnp.sum(jnp.where(valid & (p < folded), w * dev, 0), axis=1)
         keep = jnp.where(exact, 0, jnp.power(1 - c, folded[:, 0].astype(dt)) * tail[rows])
-        parts.append((rows, keep + new))
+        parts.append((rows, jnp.where(held, keep + new, tail[rows])))
+        sequential = sequential.at[rows].set(held)
         rings.append(_newest(vals, age, valid, size, sa))
-    ema = jnp.zeros_like(a.ema)
+    ema = tail
     for rows, v in parts:
         ema = ema.at[rows].set(v)
     ema = jnp.where(a.ema_n == 0, b.ema, jnp.where(b.ema_n == 0, a.ema, ema))
+    wsum = jnp.where(sequential, jnp.minimum(wsum, 1), wsum)
     return ema, off, wsum, n, tuple(rings)
 
 

@@ -5,6 +5,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from reference import SIMPLE_STATS, RefStream
@@ -118,3 +119,45 @@ def test_merged_episode_states_concatenate_envs_and_keep_running():
     assert h["Episode_Metrics/x/count"] == 7
     assert math.isclose(h["Episode_Metrics/x"], want.mean(), rel_tol=1e-6)
     assert h["Counters/env_steps"] == 10 and h["Counters/episodes"] == 7
+
+
+def _ema64(values, c):
+    """The sequential EMA (seeded by the first value) of `values` in order, in float64."""
+    e = None
+    for v in values:
+        e = float(v) if e is None else c * float(v) + (1 - c) * e
+    return e
+
+
+def test_mixed_merges_of_sharded_and_unsharded_states_follow_the_readme_rule(env_sharded):
+    # A sharded state keeps each EMA's newest values (its shards merge exactly); an
+    # unsharded one keeps none. Merged, the sharded side's EMA used to be taken alone
+    # (merge(a, b) read 1.0 here) or misweighted (merge(b, a): 3.667): the README allows
+    # the sequential EMA or the average of the workers' EMAs, and the average it is.
+    c = 0.5
+    m = jm.Metrics(terms={"x": jm.Term(lambda x: x, stats=("count", jm.ema(c)))})
+    done = jnp.ones(2, bool)
+    rng = np.random.default_rng(3)
+    steps = [rng.normal(0, 10, (3, 2)).astype(np.float32) for _ in range(3)]
+
+    def run(state, xs):
+        for x in xs:
+            state = m.update(state, jnp.asarray(x), done)
+        return state
+
+    s1 = run(m.init(2, sharding=env_sharded), steps[0])
+    s2 = run(m.init(2), steps[1])
+    s3 = run(m.init(2, sharding=env_sharded), steps[2])
+    report = lambda s: m.to_host(m.compute(s))  # noqa: E731
+    ema = lambda s: report(s)["Episode_Metrics/x/ema"]  # noqa: E731
+    e1, e2, e3 = (_ema64(x.reshape(-1), c) for x in steps)  # each worker in env order
+
+    assert ema(m.merge(s1, s2)) == pytest.approx((e1 + e2) / 2, rel=1e-5)
+    assert ema(m.merge(s2, s1)) == pytest.approx((e1 + e2) / 2, rel=1e-5)
+    three = (e1 + e2 + e3) / 3
+    assert ema(m.merge(m.merge(s1, s2), s3)) == pytest.approx(three, rel=1e-5)
+    assert ema(m.merge(s1, m.merge(s2, s3))) == pytest.approx(three, rel=1e-5)
+    assert report(m.merge(m.merge(s1, s2), s3))["Episode_Metrics/x/count"] == 18
+    # Two states with history merge sequentially: s3's values after s1's of each step.
+    both = np.stack([steps[0], steps[2]], axis=1).reshape(-1)
+    assert ema(m.merge(s1, s3)) == pytest.approx(_ema64(both, c), rel=1e-5)
