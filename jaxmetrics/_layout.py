@@ -5,7 +5,9 @@ A sharded state keeps its finished-episode statistics per env shard: shard `i` f
 communication; shards meet only when a report is computed.
 """
 
+import contextlib
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import jax
@@ -100,3 +102,24 @@ def env_layout(sharding: Any, num_envs: int) -> int:
             f"{sharding.spec} on mesh {dict(sharding.mesh.shape)}; use a multiple of {shards}."
         )
     return shards
+
+
+@contextlib.contextmanager
+def state_mesh(tree: Any) -> Iterator[None]:
+    """Traces under the mesh of `tree`'s explicitly sharded leaves, where no mesh is set.
+
+    Under Explicit mesh axes (what `jax.make_mesh` makes by default) JAX resolves the
+    sharding of a traced scatter or `arange` against the current mesh, and without
+    `jax.set_mesh` there is none ("Resource axis: env ... is not found in mesh: ()"). The
+    state's own leaves say which mesh it lives on; a mesh the caller set is kept.
+    """
+    if not jax.sharding.get_abstract_mesh().empty:
+        yield
+        return
+    for leaf in jax.tree.leaves(tree):
+        mesh = getattr(jax.typeof(leaf).sharding, "mesh", None)
+        if isinstance(mesh, jax.sharding.AbstractMesh) and not mesh.empty:
+            with jax.sharding.use_abstract_mesh(mesh):
+                yield
+            return
+    yield

@@ -11,7 +11,7 @@ import numpy as np
 
 from . import _count, _episode, _reductions, _statistics, _stream, _tags
 from ._count import Count
-from ._layout import env_layout, like
+from ._layout import env_layout, like, state_mesh
 from ._spec import Groups, Logged, MetricSpec, Term, check_name, check_policy, parse_stats
 from ._state import MetricsState, spec_id
 from ._tags import TagInfo
@@ -588,6 +588,9 @@ class Metrics:
     def update(self, state: MetricsState, step_input: Any, done: Any) -> MetricsState:
         """Folds one env step into the running episodes; finished episodes are reported.
 
+        A state sharded over Explicit mesh axes is folded under its own mesh, so no
+        `jax.set_mesh` is needed around the call.
+
         Args:
           state: the current state.
           step_input: anything the term functions take (e.g. a Brax `State`).
@@ -602,6 +605,11 @@ class Metrics:
         state = self._check_state(state, "update")
         if state.running is None:
             return state
+        with state_mesh(state):
+            return self._update(state, step_input, done)
+
+    def _update(self, state: MetricsState, step_input: Any, done: Any) -> MetricsState:
+        assert state.running is not None
         num_envs = state.running.steps.shape[-1]
         done = _as_array(done, "update: done")
         if done.shape != (num_envs,):

@@ -87,3 +87,28 @@ def test_script_block_runs_as_pasted(line, block, tmp_path):
         assert [e.step for e in counts] == [256, 512, 768, 1024]
         assert all(e.value > 0 for e in counts)
         assert out.stdout.split() == ["4"]
+
+
+@pytest.mark.slow
+def test_the_sharding_block_runs_on_jax_default_mesh_too(tmp_path):
+    # `jax.make_mesh` without `axis_types=` makes Explicit axes; the block used to fail
+    # there ("Resource axis: env ... is not found in mesh: ()") unless the user also
+    # entered `jax.set_mesh(mesh)`, which the README never mentions.
+    (block,) = [b for _, b in SCRIPTS if "axis_types=(AxisType.Auto,)" in b]
+    outputs = []
+    for variant in (block, block.replace(", axis_types=(AxisType.Auto,)", "")):
+        script = tmp_path / "block.py"
+        script.write_text(variant)
+        env = dict(
+            os.environ,
+            PYTHONPATH=os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p),
+            JAX_PLATFORMS="cpu",
+            XLA_FLAGS="--xla_force_host_platform_device_count=4",
+        )
+        out = subprocess.run(
+            [sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True
+        )
+        assert out.returncode == 0, out.stderr
+        outputs.append(out.stdout)
+    assert outputs[0] == outputs[1]
+    assert outputs[0].split()[-2:] == ["(4,", "2)"]  # 4 shards: the envs were split
