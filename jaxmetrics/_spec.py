@@ -35,6 +35,10 @@ class Ema:
             )
 
 
+MAX_WINDOW = 2**20
+"""The largest `window` size: 8 MiB of state per float32 metric."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Window:
     """Statistics of the last `size` values (mean/std/min/max and exact percentiles).
@@ -50,6 +54,14 @@ class Window:
         if not is_int(n) or n <= 0:
             raise ValueError(
                 f"window size must be a positive int, got {n!r}. Use e.g. jaxmetrics.window(100)."
+            )
+        if n > MAX_WINDOW:
+            raise ValueError(
+                f"window size {n} is over {MAX_WINDOW} (2^20): a window keeps its values and "
+                "their arrival steps in the state, in every metric and group that has it "
+                f"(window({n}) needs {8 * n / 2**30:.1f} GiB per metric in float32), and each "
+                "report sorts them. For statistics over more values use the period "
+                "statistics or jaxmetrics.quantiles(...)."
             )
         ps = tuple(self.percentiles)
         for p in ps:

@@ -63,6 +63,7 @@ def test_bad_spec_rejected_when_built(kwargs, match):
         (lambda: jm.window(0), r"window size must be a positive int, got 0"),
         (lambda: jm.window(-3), r"window size must be a positive int"),
         (lambda: jm.window(2.5), r"window size must be a positive int"),
+        (lambda: jm.window(2**31), r"window size 2147483648 is over 1048576 .*16.0 GiB per metric"),
         (lambda: jm.window(10, percentiles=(101,)), r"percentiles must be numbers in \[0, 100\]"),
         (lambda: jm.ema(0.0), r"ema coefficient must be a number in \(0, 1\], got 0.0"),
         (lambda: jm.ema(1.5), r"ema coefficient must be a number in \(0, 1\]"),
@@ -275,3 +276,13 @@ def test_names_that_are_not_clean_paths_are_refused_at_build_time(name):
     with pytest.raises(ValueError, match=r"Logger.timer.*part between slashes"):
         logger.timer(name)
     logger.close()
+
+
+def test_a_bare_string_of_stats_is_one_statistic():
+    m = jm.Metrics(
+        logged={"x": jm.Logged(stats="mean")}, terms={"r": jm.Term(lambda x: x, stats="max")}
+    )
+    assert sorted(i.tag for i in m.tags if i.group != "counter" and i.stat != "nonfinite") == [
+        "Episode_Metrics/r/max",
+        "Train/x",
+    ]
