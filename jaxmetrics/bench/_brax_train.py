@@ -14,21 +14,37 @@ with Brax's tuned PPO settings for `ant` (Brax's README), the same seed for ever
   window(100) with percentiles, histograms), default `report_every`.
 - `report_mean`: the same terms, mean + count only.
 - `report_all` (not run by default): every statistic on every term.
+- `fold_full`, `fold_mean`: `jaxmetrics.brax.wrap` with the same specs and no logger: the
+  wrapper folds on every step and never reports (the cost of the fold alone).
+- `report_full_rare`: `report_full` with `report_every=RARE_REPORT_EVERY` (5M env steps:
+  one or two reports per 10M-step run instead of 28): the per-step reporting machinery
+  (the int32 clock, the `lax.cond` on its predicate, the EMA history kept under `pmap`)
+  without the per-report cost (`all_gather`, compute, `io_callback`, writers).
 
 Per run: the steady-state env steps per second between consecutive `progress_fn` calls
-(the first interval, which compiles the training epoch, left out; it includes Brax's
-evaluation), Brax's own `training/sps` (the training epoch alone; its first epoch
-compiles), the wall time of `ppo.train`, and for the reporting variants each record's
-arrival time relative to the start of training (it shows reports arriving while training
-runs). Results are written after every run, so a run cut short keeps the finished ones.
-`--merge A.json B.json --out C.json` joins the runs of several outputs.
+(each interval includes Brax's evaluation; every interval in which a backend compile
+ended is left out: on this JAX the first two, as the training epoch compiles twice),
+Brax's own `training/sps` (the training epoch alone, over the same epochs), the wall time
+of `ppo.train`, and for the reporting variants each record's arrival time relative to the
+start of training (it shows reports arriving while training runs). Results are written
+after every run, so a run cut short keeps the finished ones. `--merge A.json B.json --out
+C.json` joins the runs of several outputs.
+
+`--trace VARIANTS` takes a `jax.profiler` trace of the last interval of those variants'
+runs (left out of the steady figures) and stores a summary of it in the run's result
+(`trace_summary`: events per device/host line, the most frequent names, and every
+memcpy/sync/callback/conditional name); `hlo_summary` summarizes an optimized HLO dump
+(`XLA_FLAGS=--xla_dump_to=D --xla_dump_hlo_module_re=_fun`).
 """
 
 import argparse
+import collections
 import functools
+import glob
 import json
 import os
 import platform
+import re
 import shutil
 import statistics
 import sys
@@ -44,9 +60,16 @@ import jax._src.api
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb  # before Brax (quiet imports)
 
+from ._hlo import _BODY, _CALLS, _CONTAINERS, _opcode, _ops, _split_computations
 from ._workload import pattern_stats
 
-VARIANTS = ("brax", "report_full", "report_mean", "report_all")
+VARIANTS = (
+    "brax", "report_full", "report_mean", "report_all",
+    "fold_full", "fold_mean", "report_full_rare",
+)  # fmt: skip
+
+RARE_REPORT_EVERY = 5_000_000
+"""`report_every` of the `*_rare` variants: one or two reports in a 10M-step run."""
 
 # Brax's tuned PPO settings for ant (brax README, "ant"); num_timesteps comes from the CLI.
 ANT_PPO = {
@@ -174,19 +197,37 @@ class CompileCounter:
             self.events.append((time.time() - self.t0, float(duration)))
 
 
+def parse_variant(variant: str) -> tuple[str, str | None, bool]:
+    """`(mode, features, rare)` of a variant name: mode "brax", "fold" or "report"."""
+    if variant == "brax":
+        return "brax", None, False
+    mode, features, *rest = variant.split("_")
+    rare = rest == ["rare"]
+    if mode not in ("fold", "report") or (rest and not rare):
+        raise ValueError(f"unknown variant {variant!r}")
+    return mode, features, rare
+
+
 def _dir_bytes(path: str) -> int:
     return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
 
 
-def _steady(progress: list[dict[str, Any]], compiles: list[tuple[float, float]]) -> dict:
+def _steady(
+    progress: list[dict[str, Any]],
+    compiles: list[tuple[float, float]],
+    traced: Sequence[int] = (),
+) -> dict:
     """Env steps per second between progress calls (the initial eval at step 0, then one
     per training epoch + eval), over the intervals in which nothing compiled.
 
     Brax compiles its training epoch in the first interval and, on this JAX, once more in
     the second (the first epoch's outputs come back with other types or layouts than
     the inputs it was traced with): `steady_sps` leaves out every interval in which a
-    backend compile ended; `steady_sps_excl_first` leaves out the first interval only."""
+    backend compile ended, and the `traced` ones (profiled); `steady_sps_excl_first`
+    leaves out the first interval only."""
     out: dict[str, Any] = {"intervals_sps": [], "compiling_intervals": []}
+    if traced:
+        out["traced_intervals"] = list(traced)
     for i, (a, b) in enumerate(zip(progress, progress[1:])):
         out["intervals_sps"].append((b["step"] - a["step"]) / (b["t_s"] - a["t_s"]))
         n = sum(a["t_s"] < t <= b["t_s"] for t, _ in compiles)
@@ -194,11 +235,8 @@ def _steady(progress: list[dict[str, Any]], compiles: list[tuple[float, float]])
             out["compiling_intervals"].append(i)
     if compiles and progress:
         out["compiles_after_last_progress"] = sum(t > progress[-1]["t_s"] for t, _ in compiles)
-    clean = [
-        (a, b)
-        for i, (a, b) in enumerate(zip(progress, progress[1:]))
-        if i not in out["compiling_intervals"]
-    ]
+    skip = set(out["compiling_intervals"]) | set(traced)
+    clean = [(a, b) for i, (a, b) in enumerate(zip(progress, progress[1:])) if i not in skip]
     out["steady_intervals"] = len(clean)
     out["steady_sps"] = (
         sum(b["step"] - a["step"] for a, b in clean) / sum(b["t_s"] - a["t_s"] for a, b in clean)
@@ -218,7 +256,7 @@ def _steady(progress: list[dict[str, Any]], compiles: list[tuple[float, float]])
         if p.get("training_sps") is not None
     ]
     out["brax_training_sps_all"] = [sps for _, sps in epochs]
-    kept = [sps for i, sps in epochs if i not in out["compiling_intervals"]]
+    kept = [sps for i, sps in epochs if i not in skip]
     if kept:
         # Steps per epoch are equal: the steady rate is the harmonic mean of the epochs'.
         out["brax_training_sps"] = len(kept) / sum(1.0 / x for x in kept)
@@ -243,21 +281,29 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
     result: dict[str, Any] = {"variant": variant, "run": run}
     logger = writer = logdir = None
     progress: list[dict[str, Any]] = []
+    mode, features, rare = parse_variant(variant)
+    report_every = RARE_REPORT_EVERY if rare else args.report_every
 
-    if variant != "brax":
-        features = variant.removeprefix("report_")
+    if mode != "brax":
         metrics, desc = build_spec(env, features)
         result["terms"] = len(desc)
         result["spec"] = desc
+    if mode == "report":
         logdir = tempfile.mkdtemp(prefix=f"brax_train_{variant}_")
+    # A trace of the last interval: from the next-to-last progress call to the last
+    # (Brax calls progress_fn num_evals times: at step 0, then after each epoch + eval).
+    trace_at = settings["num_evals"] - 1 if variant in (args.trace or "").split(",") else None
+    trace: dict[str, Any] = {}
     t0 = time.time()
     counter.start(t0)
-    if variant != "brax":
+    if mode == "report":
         writer = ArrivalWriter(t0)
         logger = jm.Logger(metrics, [jm.TensorBoardWriter(logdir), writer])
         extra["wrap_env_fn"] = functools.partial(
-            jmb.wrap, metrics=metrics, logger=logger, report_every=args.report_every
+            jmb.wrap, metrics=metrics, logger=logger, report_every=report_every
         )
+    elif mode == "fold":
+        extra["wrap_env_fn"] = functools.partial(jmb.wrap, metrics=metrics)
 
     def progress_fn(step: int, m: dict[str, Any]) -> None:
         now = time.time() - t0
@@ -271,6 +317,8 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
                 "eval_episode_reward": None if ret is None else float(ret),
             }
         )
+        if trace_at is not None and len(progress) in (trace_at, trace_at + 1):
+            _trace_toggle(trace, len(progress) == trace_at, args.trace_dir, variant, run)
         print(
             f"  [{variant} run {run}] t={now:7.1f}s step={int(step):>10}"
             + ("" if sps is None else f" training/sps={float(sps):,.0f}")
@@ -283,6 +331,8 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
         t_train = time.time() - t0
     finally:
         counter.active = False
+        if trace.get("active"):
+            _trace_toggle(trace, False, args.trace_dir, variant, run)
         if logger is not None:
             t_close0 = time.time()
             logger.close()
@@ -293,8 +343,11 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
         compile_s=round(sum(d for _, d in counter.events), 2),
         compile_events=[(round(t, 2), round(d, 2)) for t, d in counter.events],
         progress=progress,
-        **_steady(progress, counter.events),
+        **_steady(progress, counter.events, [trace_at - 1] if trace.get("dir") else []),
     )
+    if trace:
+        trace.pop("active", None)
+        result["trace"] = trace
     if writer is not None:
         arr = writer.arrivals
         result.update(
@@ -309,9 +362,139 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
         shutil.rmtree(logdir, ignore_errors=True)
     result["settings"] = {k: v for k, v in settings.items()} | {
         "num_eval_envs": args.num_eval_envs,
-        "report_every": args.report_every,
+        "report_every": report_every if mode == "report" else None,
     }
     return result
+
+
+def _trace_toggle(
+    trace: dict[str, Any], start: bool, trace_dir: str | None, variant: str, run: int
+) -> None:
+    """Starts or stops (and summarizes) a `jax.profiler` trace; errors are noted in
+    `trace["error"]`, never raised (a profile is a side show of the timing)."""
+    try:
+        if start:
+            d = tempfile.mkdtemp(prefix=f"trace_{variant}_{run}_", dir=trace_dir)
+            trace.update(dir=d, active=True)
+            jax.profiler.start_trace(d)
+            return
+        if not trace.get("active"):
+            return
+        t = time.time()
+        trace["active"] = False
+        jax.profiler.stop_trace()
+        trace["stop_s"] = round(time.time() - t, 2)
+        (path,) = glob.glob(os.path.join(trace["dir"], "**", "*.xplane.pb"), recursive=True)
+        trace["bytes"] = os.path.getsize(path)
+        t = time.time()
+        trace["summary"] = trace_summary(path)
+        trace["summarize_s"] = round(time.time() - t, 2)
+        if trace_dir is None:
+            shutil.rmtree(trace["dir"], ignore_errors=True)
+    except Exception as e:  # noqa: BLE001
+        trace["error"] = f"{type(e).__name__}: {e}"
+
+
+_NOTABLE = re.compile(r"memcpy|memset|sync|callback|conditional|cond\b|while|host", re.I)
+
+
+def trace_summary(path: str, top: int = 25) -> dict[str, Any]:
+    """Per line of every plane but the host CPU's (device streams, XLA ops/modules, CUDA
+    API calls): the number of events, their total time, the `top` most frequent names,
+    and every name that looks like a copy, a sync, a callback, a loop or a conditional."""
+    data = jax.profiler.ProfileData.from_file(path)
+    out: dict[str, Any] = {}
+    for plane in data.planes:
+        if plane.name == "/host:CPU":
+            continue
+        lines: dict[str, Any] = {}
+        for line in plane.lines:
+            count: collections.Counter[str] = collections.Counter()
+            ns: collections.Counter[str] = collections.Counter()
+            for e in line.events:
+                count[e.name] += 1
+                ns[e.name] += e.duration_ns
+            if not count:
+                continue
+            lines[line.name] = {
+                "events": sum(count.values()),
+                "total_ms": round(sum(ns.values()) / 1e6, 3),
+                "names": len(count),
+                "top": [[n, c, round(ns[n] / 1e3, 1)] for n, c in count.most_common(top)],
+                "notable": [
+                    [n, c, round(ns[n] / 1e3, 1)]
+                    for n, c in count.most_common()
+                    if _NOTABLE.search(n)
+                ][:100],
+            }
+        if lines:
+            out[plane.name] = lines
+    return out
+
+
+def hlo_summary(text: str) -> dict[str, Any]:
+    """What an optimized HLO module (`compiled.as_text()` or an XLA dump's
+    `*after_optimizations.txt`) holds: its ops (fusions counted as one; each loop body
+    once), custom-call targets, loops with and without a known trip count, and where
+    every `conditional` sits (the trip counts of the loops around it, outermost first)."""
+    comps, entry = _split_computations(text)
+    parent: dict[str, tuple[str, str, str | None]] = {}  # callee -> (caller, opcode, trips)
+    whiles = {"known_trip_count": 0, "unknown_trip_count": 0}
+    targets: collections.Counter[str] = collections.Counter()
+    conds: list[str] = []
+    for name, instrs in comps.items():
+        for instr in instrs:
+            op = _opcode(instr)
+            if op == "custom-call":
+                m = re.search(r'custom_call_target="([^"]+)"', instr)
+                targets[m.group(1) if m else "?"] += 1
+            if op not in _CONTAINERS:
+                continue
+            trips = None
+            if op == "while":
+                m = re.search(r'"known_trip_count":\{"n":"(\d+)"', instr)
+                trips = m.group(1) if m else "?"
+                whiles["known_trip_count" if m else "unknown_trip_count"] += 1
+            if op == "conditional":
+                conds.append(name)
+            callees = [m.group(1) for m in _BODY.finditer(instr)]
+            callees += re.findall(r"\b(?:true|false)_computation=%?([\w.\-]+)", instr)
+            for m in _CALLS.finditer(instr):
+                callees += [c.strip() for c in m.group(1).replace("%", "").split(",")]
+            for c in callees:
+                parent.setdefault(c, (name, op, trips))
+
+    def enclosing(name: str) -> list[str]:
+        trips: list[str] = []
+        seen: set[str] = set()
+        while name in parent and name not in seen:
+            seen.add(name)
+            name, op, n = parent[name]
+            if op == "while":
+                trips.append(n or "?")
+        return trips[::-1]
+
+    ops = collections.Counter(_ops(comps, entry, set())) if entry else collections.Counter()
+    return {
+        "ops": dict(ops.most_common()),
+        "custom_call_targets": dict(targets.most_common()),
+        "whiles": whiles,
+        "conditionals": [
+            {"in": c, "loop_trip_counts": enclosing(c)} for c in conds if not c.startswith("fused")
+        ],
+        "bytes": len(text),
+    }
+
+
+def hlo_dump_summary(directory: str, largest: int = 4) -> list[dict[str, Any]]:
+    """`hlo_summary` of the `largest` `*after_optimizations.txt` files of an XLA dump
+    (Brax's training epoch, a `pmap`, is named `jit__fun` by JAX's own `pmap`)."""
+    paths = glob.glob(os.path.join(directory, "*after_optimizations.txt"))
+    out = []
+    for path in sorted(paths, key=os.path.getsize, reverse=True)[:largest]:
+        with open(path) as fh:
+            out.append({"file": os.path.basename(path), **hlo_summary(fh.read())})
+    return out
 
 
 def _version(name: str) -> str | None:
@@ -443,6 +626,10 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--commit", default=None, help="git commit of the tree (`git rev-parse HEAD`)")
     p.add_argument("--out", default=None)
     p.add_argument("--explain-cache-misses", action="store_true", help="log why JAX recompiles")
+    p.add_argument(
+        "--trace", default=None, help="variants whose last interval to profile (comma-separated)"
+    )
+    p.add_argument("--trace-dir", default=None, help="keep the raw traces here (default: drop)")
     p.add_argument("--merge", nargs="+", default=None, help="join these outputs' runs into --out")
     return p.parse_args(argv)
 
