@@ -90,10 +90,10 @@ class Reporter:
         self._env_steps = metrics._shard_counters.index("env_steps")
 
     def init(self, num_envs: int) -> MetricsState:
-        """The fresh state of one batch: under the trainer's device axis it keeps each
-        EMA's newest values, so that the devices' states merge exactly at a report."""
-        devices = axis_size(self.axis_name)
-        if devices is None:
+        """The fresh state of one batch. With a device axis it keeps each EMA's newest
+        values, so that the devices' states merge exactly at a report, whether or not the
+        trainer resets its envs under that axis (Brax's SAC `pmap`s its reset unnamed)."""
+        if self.axis_name is None:
             return self.metrics.init(num_envs)
         return self.metrics._fresh(num_envs, 1, ema_history=True)
 

@@ -280,3 +280,26 @@ def test_a_trainer_reset_of_the_envs_continues_the_steps_and_says_so():
     for r, want in zip(records[2:], second):
         assert r.scalars["Episode_Metrics/ret/count"] == want["count"]
         assert r.scalars["Episode_Metrics/ret"] == pytest.approx(want["mean"], rel=1e-5)
+
+
+def test_envs_reset_under_an_unnamed_pmap_still_merge_exactly():
+    # Brax's SAC resets its envs under `jax.pmap(env.reset)` (no axis name) and steps them
+    # under the axis "i": the states must still merge exactly at a report.
+    devices, per_device = 2, NUM_ENVS // 2
+    metrics, memory = _spec(), jm.MemoryWriter()
+    rewards, dones = _episodes(8, NUM_ENVS, STEPS)
+    split = lambda x: np.stack(np.split(x, devices, axis=1))  # noqa: E731
+    cpus = jax.devices("cpu")[:devices]
+    with jm.Logger(metrics, [memory]) as logger:
+        wrapped = jm.wrap_step(
+            _step, metrics, logger=logger, report_every=PERIOD_CALLS * NUM_ENVS, axis_name="i"
+        )
+        carry = jax.pmap(lambda z: wrapped.init(z, per_device), devices=cpus)(jnp.zeros(devices))
+
+        def run(carry, r, d):
+            return jax.lax.scan(lambda c, x: (wrapped(c, x)[0], None), carry, (r, d))[0]
+
+        jax.block_until_ready(
+            jax.pmap(run, axis_name="i", devices=cpus)(carry, split(rewards), split(dones))
+        )
+    _check(memory.records, _reference(rewards, dones, PERIOD_CALLS), NUM_ENVS)
