@@ -179,6 +179,9 @@ def _scalars(where: str, **args: Any) -> tuple[jax.Array, ...]:
     return tuple(out)
 
 
+# How long the writer thread lets an emit's callback finish before writing its records.
+_CALLBACK_GRACE_S = 0.005
+
 # Loggers not yet closed, closed together at interpreter exit (in creation order).
 _OPEN: dict[int, "Logger"] = {}
 
@@ -683,6 +686,7 @@ class Logger(AbstractContextManager):
                 # Raised inside the jitted call that emitted, the only place left to say it.
                 raise RuntimeError("Logger.emit: the logger is closed; create a new Logger.")
             self.emit_calls += 1
+            queued = False
             for i in np.flatnonzero(when):
                 r, s = int(run[i]), int(step[i])
                 if not 0 <= r < self.runs:
@@ -694,6 +698,13 @@ class Logger(AbstractContextManager):
                 if from_wrapper:
                     s, host = self._continued(r, s, host)
                 self._unchecked.append(_PendingNonFinite(s, (r,), counts[i]))
+                if not queued:
+                    # The device waits for this callback, and JAX still runs Python after
+                    # it returns; a writer thread woken now would hold the GIL through a
+                    # record's Python (TensorBoard's is milliseconds) and keep the device
+                    # idle meanwhile. It first sleeps, so that the callback returns alone.
+                    self._queue.put(functools.partial(time.sleep, _CALLBACK_GRACE_S))
+                    queued = True
                 self._queue.put(functools.partial(self._write_run, r, host, s, wall_time, {}))
 
     def _continued(

@@ -16,6 +16,8 @@ with Brax's tuned PPO settings for `ant` (Brax's README), the same seed for ever
 - `report_all` (not run by default): every statistic on every term.
 - `fold_full`, `fold_mean`: `jaxmetrics.brax.wrap` with the same specs and no logger: the
   wrapper folds on every step and never reports (the cost of the fold alone).
+- `report_full_mem`: `report_full` with a `jm.MemoryWriter` in place of the TensorBoard
+  writer (what the report costs without event files).
 - `report_full_rare`: `report_full` with `report_every=RARE_REPORT_EVERY` (5M env steps:
   one or two reports per 10M-step run instead of 28): the per-step reporting machinery
   (the int32 clock, the `lax.cond` on its predicate, the EMA history kept under `pmap`)
@@ -29,6 +31,14 @@ of `ppo.train`, and for the reporting variants each record's arrival time relati
 start of training (it shows reports arriving while training runs). Results are written
 after every run, so a run cut short keeps the finished ones. `--merge A.json B.json --out
 C.json` joins the runs of several outputs.
+
+`--time-callbacks` times the host side of every report of the reporting variants
+(`callback_times`, perf_counter): JAX's own host function around ours (`io_callback_impl`:
+the operands put on the CPU device, then our function), `Logger._on_emit` (numpy copies,
+queueing the job), the writer thread's job per record (`_write_run`: unpack, `Record`, every
+writer) and the main writer's `write`; each with its start. `--callback-probe` measures, in
+a small jitted device loop (no Brax), what one ordered `io_callback` under `lax.cond`
+costs: the loop's time with a callback every k iterations against none.
 
 `--trace VARIANTS` takes a `jax.profiler` trace of the last interval of those variants'
 runs (left out of the steady figures) and stores a summary of it in the run's result
@@ -65,7 +75,7 @@ from ._workload import pattern_stats
 
 VARIANTS = (
     "brax", "report_full", "report_mean", "report_all",
-    "fold_full", "fold_mean", "report_full_rare",
+    "fold_full", "fold_mean", "report_full_rare", "report_full_mem",
 )  # fmt: skip
 
 RARE_REPORT_EVERY = 5_000_000
@@ -197,15 +207,129 @@ class CompileCounter:
             self.events.append((time.time() - self.t0, float(duration)))
 
 
-def parse_variant(variant: str) -> tuple[str, str | None, bool]:
-    """`(mode, features, rare)` of a variant name: mode "brax", "fold" or "report"."""
+def parse_variant(variant: str) -> tuple[str, str | None, bool, str]:
+    """`(mode, features, rare, sink)` of a variant name: mode "brax", "fold" or "report";
+    sink "tensorboard", or "memory" for `*_mem` (a `MemoryWriter` instead)."""
     if variant == "brax":
-        return "brax", None, False
+        return "brax", None, False, "tensorboard"
     mode, features, *rest = variant.split("_")
-    rare = rest == ["rare"]
-    if mode not in ("fold", "report") or (rest and not rare):
+    rare, mem = rest == ["rare"], rest == ["mem"]
+    if mode not in ("fold", "report") or (rest and not (rare or mem)):
         raise ValueError(f"unknown variant {variant!r}")
-    return mode, features, rare
+    return mode, features, rare, "memory" if mem else "tensorboard"
+
+
+def _ms_stats(xs: Sequence[float]) -> dict[str, Any]:
+    """Count, mean, median, p90, max and sum of durations in seconds, in ms."""
+    if not xs:
+        return {"n": 0}
+    ms = sorted(1e3 * x for x in xs)
+    return {
+        "n": len(ms),
+        "mean_ms": round(statistics.mean(ms), 4),
+        "median_ms": round(statistics.median(ms), 4),
+        "p90_ms": round(ms[min(len(ms) - 1, int(0.9 * len(ms)))], 4),
+        "max_ms": round(ms[-1], 4),
+        "sum_ms": round(sum(ms), 3),
+    }
+
+
+class CallbackTimes:
+    """Host-side timings of a reporting variant's reports (`--time-callbacks`).
+
+    - `jax_callback`: JAX's own host function of an `io_callback` (`io_callback_impl`:
+      the operands `device_put` on the CPU device, then ours), wrapped in the module for
+      the run (it is looked up there at every call);
+    - `on_emit`: `Logger._on_emit` (a `Logger` subclass: the logger binds it when built);
+    - `writer_job`: the writer thread's job per record (`Logger._write_run`: unpack,
+      build the `Record`, every writer);
+    - `write`: the main writer's `write` (its instance attribute, wrapped).
+
+    Each entry: (start in s after `t0`, duration in s)."""
+
+    def __init__(self, t0: float):
+        self.t0 = t0
+        self.times: dict[str, list[tuple[float, float]]] = {
+            "jax_callback": [], "on_emit": [], "writer_job": [], "write": [],
+        }  # fmt: skip
+        self.arg_types: list[str] | None = None
+        self._jax_module: Any = None
+        self._jax_impl: Any = None
+
+    def _note(self, key: str, start: float) -> None:
+        self.times[key].append((start - self.t0, time.perf_counter() - start))
+
+    def logger_class(self) -> type:
+        times = self
+
+        class TimedLogger(jm.Logger):
+            def _on_emit(self, packed: Any, step: Any, when: Any, run: Any) -> None:
+                t = time.perf_counter()
+                if times.arg_types is None:
+                    times.arg_types = [type(a).__name__ for a in (*packed, when)]
+                try:
+                    return super()._on_emit(packed, step, when, run)
+                finally:
+                    times._note("on_emit", t)
+
+            def _write_run(self, *args: Any, **kwargs: Any) -> None:
+                t = time.perf_counter()
+                try:
+                    return super()._write_run(*args, **kwargs)
+                finally:
+                    times._note("writer_job", t)
+
+        return TimedLogger
+
+    def wrap_writer(self, writer: Any) -> None:
+        write = writer.write
+
+        def timed_write(record: Any) -> None:
+            t = time.perf_counter()
+            try:
+                write(record)
+            finally:
+                self._note("write", t)
+
+        writer.write = timed_write
+
+    def patch_jax(self) -> bool:
+        """Wraps JAX's `io_callback_impl` (False where this JAX has none)."""
+        try:
+            from jax._src import callback as module
+        except ImportError:
+            return False
+        impl = getattr(module, "io_callback_impl", None)
+        if impl is None:
+            return False
+
+        def timed_impl(*args: Any, **kwargs: Any) -> Any:
+            t = time.perf_counter()
+            try:
+                return impl(*args, **kwargs)
+            finally:
+                self._note("jax_callback", t)
+
+        self._jax_module, self._jax_impl = module, impl
+        module.io_callback_impl = timed_impl
+        return True
+
+    def unpatch_jax(self) -> None:
+        if self._jax_module is not None:
+            self._jax_module.io_callback_impl = self._jax_impl
+            self._jax_module = None
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {k: _ms_stats([d for _, d in v]) for k, v in self.times.items()}
+        starts = [s for s, _ in self.times["on_emit"]]
+        gaps = [b - a for a, b in zip(starts, starts[1:])]
+        out["on_emit_interval"] = _ms_stats(gaps) if gaps else {"n": 0}
+        out["arg_types"] = self.arg_types
+        out["switch_interval_ms"] = 1e3 * sys.getswitchinterval()
+        out["raw"] = {
+            k: [(round(s, 4), round(1e3 * d, 4)) for s, d in v] for k, v in self.times.items()
+        }
+        return out
 
 
 def _dir_bytes(path: str) -> int:
@@ -281,7 +405,7 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
     result: dict[str, Any] = {"variant": variant, "run": run}
     logger = writer = logdir = None
     progress: list[dict[str, Any]] = []
-    mode, features, rare = parse_variant(variant)
+    mode, features, rare, sink = parse_variant(variant)
     report_every = RARE_REPORT_EVERY if rare else args.report_every
 
     if mode != "brax":
@@ -294,11 +418,20 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
     # (Brax calls progress_fn num_evals times: at step 0, then after each epoch + eval).
     trace_at = settings["num_evals"] - 1 if variant in (args.trace or "").split(",") else None
     trace: dict[str, Any] = {}
-    t0 = time.time()
+    t0, t0_perf = time.time(), time.perf_counter()
     counter.start(t0)
+    times = None
     if mode == "report":
         writer = ArrivalWriter(t0)
-        logger = jm.Logger(metrics, [jm.TensorBoardWriter(logdir), writer])
+        main_writer = jm.MemoryWriter() if sink == "memory" else jm.TensorBoardWriter(logdir)
+        logger_class: Any = jm.Logger
+        if args.time_callbacks:
+            times = CallbackTimes(t0_perf)
+            logger_class = times.logger_class()
+            times.wrap_writer(main_writer)
+            result["jax_callback_timed"] = times.patch_jax()
+        logger = logger_class(metrics, [main_writer, writer])
+        result["writer"] = type(main_writer).__name__
         extra["wrap_env_fn"] = functools.partial(
             jmb.wrap, metrics=metrics, logger=logger, report_every=report_every
         )
@@ -331,6 +464,8 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
         t_train = time.time() - t0
     finally:
         counter.active = False
+        if times is not None:
+            times.unpatch_jax()
         if trace.get("active"):
             _trace_toggle(trace, False, args.trace_dir, variant, run)
         if logger is not None:
@@ -348,6 +483,8 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
     if trace:
         trace.pop("active", None)
         result["trace"] = trace
+    if times is not None:
+        result["callback_times"] = times.summary()
     if writer is not None:
         arr = writer.arrivals
         result.update(
@@ -365,6 +502,84 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
         "report_every": report_every if mode == "report" else None,
     }
     return result
+
+
+def callback_probe(
+    iters: int = 3000, periods: Sequence[int] = (0, 300, 100, 30), repeats: int = 5
+) -> dict[str, Any]:
+    """What one ordered `io_callback` under `lax.cond` costs in a device loop like Brax's.
+
+    A jitted `fori_loop` of `iters` steps (8 small matmul + tanh kernels each, on a
+    4096 x 256 array) with a `lax.cond` per step that fires an ordered `io_callback` of a
+    1,452-byte operand (the size of a report) and the step every `period` steps (never
+    for 0: the cond, no callback). Per period: the median seconds of `repeats` calls after
+    a warm-up (one compile: the period is an argument), the callbacks made, the cost per
+    callback (`(t - t_0) / callbacks`), and the host function's own time."""
+    import numpy as np
+    from jax.experimental import io_callback
+
+    jnp = jax.numpy
+    host_s: list[float] = []
+    times = CallbackTimes(time.perf_counter())
+    patched = times.patch_jax()
+
+    def host(x: Any, i: Any) -> None:
+        t = time.perf_counter()
+        np.asarray(x).sum()
+        int(i)
+        host_s.append(time.perf_counter() - t)
+
+    def loop(x: Any, w: Any, period: Any) -> Any:
+        def body(i: Any, x: Any) -> Any:
+            for _ in range(8):
+                x = jnp.tanh(x @ w)
+
+            def fire(x: Any) -> Any:
+                io_callback(host, None, x[:2].reshape(-1)[:363], i, ordered=True)
+                return x
+
+            due = (period > 0) & (i % jnp.maximum(period, 1) == 0)
+            return jax.lax.cond(due, fire, lambda x: x, x)
+
+        return jax.lax.fori_loop(0, iters, body, x)
+
+    f = jax.jit(loop)
+    x = jnp.ones((4096, 256), jnp.float32)
+    w = jnp.eye(256, dtype=jnp.float32) * 0.5
+    out: dict[str, Any] = {"iters": iters, "repeats": repeats, "jax_callback_timed": patched}
+    try:
+        t = time.perf_counter()
+        f(x, w, 0).block_until_ready()
+        out["first_call_s"] = round(time.perf_counter() - t, 3)
+        rows = []
+        for period in periods:
+            f(x, w, period).block_until_ready()
+            host_s.clear()
+            for v in times.times.values():
+                v.clear()
+            ts = []
+            for _ in range(repeats):
+                t = time.perf_counter()
+                f(x, w, period).block_until_ready()
+                ts.append(time.perf_counter() - t)
+            calls = -(-iters // period) if period else 0
+            rows.append(
+                {
+                    "period": period,
+                    "callbacks_per_call": calls,
+                    "median_s": statistics.median(ts),
+                    "all_s": ts,
+                    "host_fn": _ms_stats(host_s),
+                    "jax_callback": _ms_stats([d for _, d in times.times["jax_callback"]]),
+                }
+            )
+        base = rows[0]["median_s"]
+        for r in rows[1:]:
+            r["ms_per_callback"] = 1e3 * (r["median_s"] - base) / r["callbacks_per_call"]
+        out["rows"] = rows
+    finally:
+        times.unpatch_jax()
+    return out
 
 
 def _trace_toggle(
@@ -630,6 +845,10 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         "--trace", default=None, help="variants whose last interval to profile (comma-separated)"
     )
     p.add_argument("--trace-dir", default=None, help="keep the raw traces here (default: drop)")
+    p.add_argument("--time-callbacks", action="store_true", help="time each report's host side")
+    p.add_argument(
+        "--callback-probe", action="store_true", help="what one io_callback costs (no Brax)"
+    )
     p.add_argument("--merge", nargs="+", default=None, help="join these outputs' runs into --out")
     return p.parse_args(argv)
 
@@ -667,6 +886,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         "runs": [],
     }
     print(json.dumps(doc["environment"]), flush=True)
+    if args.callback_probe:
+        doc["callback_probe"] = callback_probe()
+        for r in doc["callback_probe"]["rows"]:
+            print({k: v for k, v in r.items() if k != "all_s"}, flush=True)
+        if args.out:
+            _write(args.out, doc)
     # Runs interleave the variants (run 1 of each, then run 2 of each) against drift.
     for run in range(args.first_run, args.first_run + args.runs):
         for v in variants:
@@ -684,7 +909,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             )
             if args.out:
                 _write(args.out, doc)
-    print(table(doc["runs"], doc["summary"]))
+    if doc["runs"]:
+        print(table(doc["runs"], doc["summary"]))
 
 
 if __name__ == "__main__":
