@@ -235,8 +235,9 @@ def test_bad_input_is_named_when_the_wrapper_is_built():
     with pytest.raises(TypeError, match=r"axis_name=\.\.\.\) must be a str"):
         jm.wrap_step(_step, metrics, logger=logger, axis_name=0)
     logged_only = jm.Metrics(logged=["loss"])
-    with pytest.raises(ValueError, match="counts no env steps"):
-        jm.wrap_step(_step, logged_only, logger=jm.Logger(logged_only, []))
+    with jm.Logger(logged_only, []) as other_logger:
+        with pytest.raises(ValueError, match="counts no env steps"):
+            jm.wrap_step(_step, logged_only, logger=other_logger)
     wrapped = jm.wrap_step(_step, metrics, logger=logger)
     with pytest.raises(TypeError, match=r"triple \(carry, metrics_state, clock\)"):
         wrapped((jnp.zeros(()), metrics.init(2)), (jnp.zeros(2), jnp.zeros(2, bool)))
