@@ -412,10 +412,9 @@ class Logger(AbstractContextManager):
             compute, metrics.reset_period, self._on_emit, runs_by_position=self.runs
         )
         self.include_running = bool(include_running)
-        # Per run, a reporting wrapper's last env-step count, the step written for it and
-        # the offset that continues the count after the trainer resets the envs.
+        # Per run, a reporting wrapper's last env-step count and the offset that continues
+        # the count after the trainer resets the envs (its last record's step: both added).
         self._wrapper_raw: list[int | None] = [None] * self.runs
-        self._wrapper_step = [0] * self.runs
         self._wrapper_offset = [0] * self.runs
         # Written records worth a word (steps that went back): warnings, not errors.
         self._notices: list[str] = []
@@ -662,7 +661,7 @@ class Logger(AbstractContextManager):
         return self._emit(state, step, when, run)
 
     def _emit_from_wrapper(self, state: MetricsState, step: Count, when: jax.Array) -> MetricsState:
-        """`emit` for a reporting wrapper (`jaxmetrics.Reporting`): the step is an exact
+        """`emit` for a reporting wrapper (`_reporting.Reporter`): the step is an exact
         `Count` (env steps pass 2^31 in long runs), and under `vmap` each seed's position
         on the vmapped axis is its run."""
         self._check_open("emit")
@@ -719,15 +718,14 @@ class Logger(AbstractContextManager):
         the period divides the steps between resets)."""
         last = self._wrapper_raw[run]
         if last is not None and raw <= last:
-            self._wrapper_offset[run] = self._wrapper_step[run]
+            self._wrapper_offset[run] += last
             self._notices.append(
-                f"run {run}: the envs were reset after step {self._wrapper_step[run]} (e.g. "
+                f"run {run}: the envs were reset after step {self._wrapper_offset[run]} (e.g. "
                 "Brax's num_resets_per_eval): windows and EMAs restarted, and episodes ended "
                 "since that record were not reported; records go on from that step"
             )
         self._wrapper_raw[run] = raw
         offset = self._wrapper_offset[run]
-        self._wrapper_step[run] = offset + raw
         if offset == 0:
             return raw, host
         return offset + raw, functools.partial(_shifted, host, self._env_steps_tag, offset)

@@ -500,13 +500,9 @@ class Metrics:
                 "metrics.init(num_envs))), with the spec, num_envs and sharding it was "
                 "saved with."
             )
-        for path, x, y in zip(
-            jax.tree_util.tree_leaves_with_path(saved),
-            jax.tree.leaves(saved),
-            jax.tree.leaves(want),
-        ):
+        for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(saved), jax.tree.leaves(want)):
             if jnp.shape(x) != y.shape or jnp.result_type(x) != y.dtype:
-                where = jax.tree_util.keystr(path[0])
+                where = jax.tree_util.keystr(path)
                 raise ValueError(
                     f"from_checkpoint: {where} is {jnp.result_type(x)}{list(jnp.shape(x))}, "
                     f"but the target has {y.dtype}{list(y.shape)}: pass init() of the spec, "

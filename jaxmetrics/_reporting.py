@@ -84,7 +84,7 @@ class Reporter:
             )
         if axis_name is not None and not isinstance(axis_name, str):
             raise TypeError(f"{where}(axis_name=...) must be a str or None, got {axis_name!r}.")
-        self.metrics, self.logger, self.where = metrics, logger, where
+        self.metrics, self.logger = metrics, logger
         self.report_every = None if report_every is None else int(report_every)
         self.axis_name = axis_name
         self._env_steps = metrics._shard_counters.index("env_steps")

@@ -64,7 +64,7 @@ class WrappedStep:
             shape = (
                 "pair (carry, metrics_state)"
                 if self.reporter is None
-                else ("triple (carry, metrics_state, clock)")
+                else "triple (carry, metrics_state, clock)"
             )
             raise TypeError(
                 f"the wrapped step's carry must be the {shape}; start from "
