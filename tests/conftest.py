@@ -26,3 +26,15 @@ def env_sharded() -> jax.sharding.NamedSharding:
         (2,), ("env",), axis_types=(jax.sharding.AxisType.Auto,), devices=jax.devices("cpu")[:2]
     )
     return jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))
+
+
+@pytest.fixture
+def brax_ppo_on_this_jax(monkeypatch):
+    """Brax 0.14.2's ppo.train calls jax.device_put_replicated, which JAX 0.10 removed from
+    the public namespace (the function is still in jax._src.api): the name is restored for
+    the test only, so that Brax's real trainer runs."""
+    import jax._src.api
+
+    monkeypatch.setattr(
+        jax, "device_put_replicated", jax._src.api.device_put_replicated, raising=False
+    )

@@ -6,8 +6,6 @@ what TensorBoard's reader finds in the event files with the dicts Brax passed.""
 import math
 import os
 
-import jax
-import jax._src.api
 import numpy as np
 import pytest
 from brax import envs
@@ -123,16 +121,6 @@ def test_a_run_that_fails_before_the_first_report_leaves_no_event_file(tmp_path)
         with jmb.ProgressFn([jm.TensorBoardWriter(tmp_path)]):
             raise RuntimeError("Brax failed before its first report")
     assert os.listdir(tmp_path) == []
-
-
-@pytest.fixture
-def brax_ppo_on_this_jax(monkeypatch):
-    # brax 0.14.2's ppo.train calls jax.device_put_replicated, which JAX 0.10 removed from
-    # the public namespace (the function is still in jax._src.api): restore the name for
-    # this test only, so that Brax's real trainer runs.
-    monkeypatch.setattr(
-        jax, "device_put_replicated", jax._src.api.device_put_replicated, raising=False
-    )
 
 
 @pytest.mark.slow

@@ -6,7 +6,6 @@ episodes are not in it; closing the logger after training writes everything once
 import functools
 
 import jax
-import jax._src.api
 import numpy as np
 import pytest
 from brax import envs
@@ -84,15 +83,6 @@ def _read(logdir) -> dict[str, list[tuple[int, float]]]:
     )
     acc.Reload()
     return {t: [(e.step, e.value) for e in acc.Scalars(t)] for t in acc.Tags()["scalars"]}
-
-
-@pytest.fixture
-def brax_ppo_on_this_jax(monkeypatch):
-    # brax 0.14.2's ppo.train calls jax.device_put_replicated, which JAX 0.10 removed from
-    # the public namespace (see test_brax_progress.py).
-    monkeypatch.setattr(
-        jax, "device_put_replicated", jax._src.api.device_put_replicated, raising=False
-    )
 
 
 @pytest.mark.slow

@@ -124,13 +124,10 @@ def test_running_episodes_report_their_discounted_return_so_far():
     assert m.to_host(m.compute(s, include_running=True))["Episode_Metrics/r/running"] == 5.5
 
 
-@pytest.mark.parametrize("gamma", [0.99, 0.999, 0.9999, 1.0])
-def test_10k_step_float32_episodes_within_1e6_of_float64(gamma):
-    steps, envs = 10_000, 4
-    rng = np.random.default_rng(0)
-    xs = (100.0 + rng.standard_normal((steps, envs))).astype(np.float32)
-    dones = np.zeros((steps, envs), bool)
-    dones[-1] = True
+def _one_episode_each(xs: np.ndarray, dones: np.ndarray, gamma: float) -> np.ndarray:
+    """The discounted returns `Metrics` reports for `xs`/`dones` `[steps, envs]`, folded under
+    `jit` + `lax.scan`, in report order."""
+    envs = xs.shape[1]
     m = jm.Metrics(
         terms={"r": jm.Term(lambda x: x, reduce=jm.discounted(gamma), stats=(jm.window(envs),))}
     )
@@ -140,9 +137,18 @@ def test_10k_step_float32_episodes_within_1e6_of_float64(gamma):
         body = lambda s, a: (m.update(s, *a), None)  # noqa: E731
         return m.compute(jax.lax.scan(body, m.init(envs), (xs, dones))[0])
 
-    got = m.to_host(go(jnp.asarray(xs), jnp.asarray(dones)))["Episode_Metrics/r/window_values"]
+    return m.to_host(go(jnp.asarray(xs), jnp.asarray(dones)))["Episode_Metrics/r/window_values"]
+
+
+@pytest.mark.parametrize("gamma", [0.99, 0.999, 0.9999, 1.0])
+def test_10k_step_float32_episodes_within_1e6_of_float64(gamma):
+    steps, envs = 10_000, 4
+    rng = np.random.default_rng(0)
+    xs = (100.0 + rng.standard_normal((steps, envs))).astype(np.float32)
+    dones = np.zeros((steps, envs), bool)
+    dones[-1] = True
     want = np.asarray(discounted_returns(xs, dones, gamma), np.float64)
-    np.testing.assert_allclose(got, want, rtol=1e-6)
+    np.testing.assert_allclose(_one_episode_each(xs, dones, gamma), want, rtol=1e-6)
     if gamma in (0.999, 0.9999):
         # A running float32 factor (gamma^t as a product of float32 gammas) drifts past the
         # bound (measured: 1.3e-5 and 6.9e-5 relative).
@@ -239,15 +245,5 @@ def test_a_sparse_terminal_reward_is_discounted_within_1e6_of_float64(gamma, len
     xs[-1] = (1.0, 3.0)
     dones = np.zeros((length, envs), bool)
     dones[-1] = True
-    m = jm.Metrics(
-        terms={"r": jm.Term(lambda x: x, reduce=jm.discounted(gamma), stats=(jm.window(envs),))}
-    )
-
-    @jax.jit
-    def go(xs, dones):
-        body = lambda s, a: (m.update(s, *a), None)  # noqa: E731
-        return m.compute(jax.lax.scan(body, m.init(envs), (xs, dones))[0])
-
-    got = m.to_host(go(jnp.asarray(xs), jnp.asarray(dones)))["Episode_Metrics/r/window_values"]
     want = np.asarray(discounted_returns(xs, dones, gamma), np.float64)
-    np.testing.assert_allclose(got, want, rtol=1e-6)
+    np.testing.assert_allclose(_one_episode_each(xs, dones, gamma), want, rtol=1e-6)
