@@ -26,7 +26,7 @@ _SHARD_COUNTERS = ("env_steps", "episodes", GROUP_COUNTER)
 # another layout is refused as another spec's instead of being misread. 2: running
 # episodes in three slots per env (`_episode.SLOTS`); EMA fields and window positions of
 # every stream row. 3: env steps counted per shard (`ended`); arrival steps per row.
-# 4: `ended` padded to whole multiples of the episode rows (`_stream.tally_width`); a
+# 4: `ended` padded to whole multiples of the episode rows (`_stream.counts_width`); a
 # histogram's step counts kept (zero) in the state. 5: a ring slot (windows, EMA history)
 # holds its value's bits and its arrival stamp in one `uint32` array (`_stream.Ring.data`).
 STATE_LAYOUT = 5
@@ -431,7 +431,7 @@ class Metrics:
             if has_ep
             else None,
             ended=_count.zeros(
-                (shards, _stream.tally_width(self._ep_plan, len(self._shard_counters)))
+                (shards, _stream.counts_width(self._ep_plan, len(self._shard_counters)))
             )
             if has_ep
             else None,
@@ -673,7 +673,7 @@ class Metrics:
         tally = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
 
         def fold(st, v, m, n, t, e):
-            return _stream.add_tallied(plan, st, v, m, n, t, e, fused=shards == 1)
+            return _stream.add_with_counts(plan, st, v, m, n, t, e, fused=shards == 1)
 
         args = (
             state.finished,

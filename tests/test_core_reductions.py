@@ -366,10 +366,10 @@ def test_arrival_ranks_count_the_later_entries_of_each_row(rows):
 def test_fused_kernel_matches_a_python_loop(rows, log_batch, size, seed):
     # The CUDA kernel (`_fused_ema`), run in Pallas' interpret mode since CI has no GPU,
     # against float64 numpy and a loop over each row in arrival order: the batch's
-    # statistics and tallies, the EMA's weighted sum and a ring written one arrival at a
+    # statistics and counted sums, the EMA's weighted sum and a ring written one arrival at a
     # time. Rows cover no EMA (c = 0), c = 1 (0^0 = 1), a seeding row, far-from-zero
     # values, empty rows, and rows in and out of the ring.
-    from jaxmetrics import _fused_ema
+    from jaxmetrics._stream import _kernel
 
     rng = np.random.default_rng(seed)
     batch = 2**log_batch
@@ -377,7 +377,7 @@ def test_fused_kernel_matches_a_python_loop(rows, log_batch, size, seed):
     level = rng.choice([1e4, 1e6])
     values = (level + rng.normal(size=(rows, batch))).astype(np.float32)
     nonfinite = rng.integers(0, 2, (rows, batch), dtype=np.int32)
-    tally = rng.integers(0, 3, (rows * rng.integers(0, 3), batch), dtype=np.int32)
+    counted = rng.integers(0, 3, (rows * rng.integers(0, 3), batch), dtype=np.int32)
     coeff = rng.choice([0.0, 0.01, 0.3, 1.0], rows).astype(np.float32)
     ema_w = rng.choice([0.0, 1.0], rows).astype(np.float32)  # 0: unseeded
     ema_off, shift = (level + rng.normal(size=(2, rows))).astype(np.float32)
@@ -392,13 +392,13 @@ def test_fused_kernel_matches_a_python_loop(rows, log_batch, size, seed):
     pos = rng.integers(0, size, rows).astype(np.int32)
 
     def fold(m, v, bad, t, ta, w, o, sh, d, p):
-        ema = _fused_ema.EmaIn(coeff, w, o)
-        ring = _fused_ema.RingIn(d, p, ring_row, np.arange(rows))
-        return _fused_ema.fold(m, v, bad, sh, t, ta, ema, (ring,), interpret=True)
+        ema = _kernel.EmaIn(coeff, w, o)
+        ring = _kernel.RingIn(d, p, ring_row, np.arange(rows))
+        return _kernel.fold(m, v, bad, sh, t, ta, ema, (ring,), interpret=True)
 
-    args = (mask, values, nonfinite, steps, tally, ema_w, ema_off, shift, data, pos)
+    args = (mask, values, nonfinite, steps, counted, ema_w, ema_off, shift, data, pos)
     stats, (got,) = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
-    np.testing.assert_array_equal(stats.tallies, tally.sum(axis=1))
+    np.testing.assert_array_equal(stats.counted_sums, counted.sum(axis=1))
     np.testing.assert_array_equal(stats.nonfinite, nonfinite.sum(axis=1))
     np.testing.assert_array_equal(stats.count, mask.sum(axis=1))
 
@@ -466,8 +466,8 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch):
         return scan(metrics.init(64), jnp.asarray(xs), jnp.asarray(dones))
 
     plain = run()
-    fold = _stream.add_tallied
-    monkeypatch.setattr(_stream, "add_tallied", functools.partial(fold, interpret=True))
+    fold = _stream.add_with_counts
+    monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
     state = metrics.init(64)
     assert "pallas_call" in str(jax.make_jaxpr(metrics.update)(state, xs[0], dones[0]))
     fused = run()

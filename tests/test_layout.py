@@ -23,7 +23,6 @@ PACKAGE = Path(jm.__file__).resolve().parent
 CORE = {
     "_count",
     "_episode",
-    "_fused_ema",
     "_layout",
     "_metrics",
     "_numerics",

@@ -282,7 +282,7 @@ def test_float64_state_keeps_window_and_ema_history_to_the_last_bit():
 
 
 def test_fused_kernel_serves_one_shard_and_never_a_state_split_over_shards():
-    # The CUDA kernel (`_fused_ema`) is a custom call XLA cannot partition: under a state
+    # The CUDA kernel (`_stream._kernel`) is a custom call XLA cannot partition: under a state
     # split over devices it would gather every shard's batch each step. A one-shard state
     # traces it (for CUDA; other platforms take the jnp branch), a sharded one never does.
     mesh, env = mesh_of("4")

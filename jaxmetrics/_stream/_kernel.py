@@ -2,7 +2,7 @@
 EMA's weighted sum and the ring writes.
 
 `_stream.add` needs, per row of a batch `[R, B]`: the count, sum, min, max and moments of the
-row's masked-in values, its non-finite flags and tallies summed, how many masked-in entries
+row's masked-in values, its non-finite flags and counted_sums summed, how many masked-in entries
 arrive after each one (`after`), the EMA's weighted sum of the batch, and the newest values
 written to their ring slots (windows, EMA history). XLA does that in five kernels (the
 batch's reduction, the mask packed into words, the later words' counts, the weighted
@@ -57,11 +57,11 @@ class EmaIn(NamedTuple):
 
 
 def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int):
-    """One batch row; `rings` are the ring sizes, `packs` the tally arrays. `table` holds
+    """One batch row; `rings` are the ring sizes, `packs` the counted arrays. `table` holds
     the row's static ints: the EMA coefficient's bits, then each ring's `row` and
     `pos_row`."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
-    tally_refs, refs = refs[:packs], refs[packs:]
+    counted_refs, refs = refs[:packs], refs[packs:]
     if ema:
         w_ref, eoff_ref, *refs = refs
     ring_in, refs = refs[: 2 * len(rings)], refs[2 * len(rings) :]
@@ -90,7 +90,7 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int):
     floats[:, 4:5] = jnp.maximum(jnp.sum(e * e, axis=1, keepdims=True) - s1 * s1 / k, 0)
     ints[:, 0:1] = total
     ints[:, 1:2] = jnp.sum(bad_ref[...], axis=1, keepdims=True)
-    for j, t in enumerate(tally_refs):
+    for j, t in enumerate(counted_refs):
         ints[:, 2 + j : 3 + j] = jnp.sum(t[...], axis=1, keepdims=True)
 
     if ema:
@@ -128,8 +128,8 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int):
 class Batch(NamedTuple):
     """Per row of a batch (`[R]`): its count, sum, min and max (+-inf when empty), the mean
     of its deviations from `shift` and their sum of squares around that mean, the sum of
-    its `nonfinite` flags, and with an EMA its weighted sum (else None); and `tallies`,
-    the sums of the tally rows (`[C]`)."""
+    its `nonfinite` flags, and with an EMA its weighted sum (else None); and `counted_sums`,
+    the sums of the counted rows (`[C]`)."""
 
     count: jax.Array
     sum: jax.Array
@@ -139,7 +139,7 @@ class Batch(NamedTuple):
     m2: jax.Array
     nonfinite: jax.Array
     ema: jax.Array | None
-    tallies: jax.Array
+    counted_sums: jax.Array
 
 
 def fold(
@@ -148,13 +148,13 @@ def fold(
     nonfinite: jax.Array,
     shift: jax.Array,
     steps: jax.Array,
-    tally: jax.Array,
+    counted: jax.Array,
     ema: EmaIn | None = None,
     rings: tuple[RingIn, ...] = (),
     interpret: bool = False,
 ) -> tuple[Batch, tuple[jax.Array, ...]]:
     """Folds a batch `values[R, B]` (float32) where `mask` (bool): its statistics
-    (`Batch`; `nonfinite[R, B]` int32 flags, `shift[R]` float32, `tally[C, B]` int32 with
+    (`Batch`; `nonfinite[R, B]` int32 flags, `shift[R]` float32, `counted[C, B]` int32 with
     C a multiple of R: as arrays shaped like the batch, XLA writes them in the same
     kernel as the batch, where a `[C, B]` of its own is one more kernel per step), and
     each ring's data with its rows' newest arrivals written in, stamped with the row's
@@ -173,7 +173,7 @@ def fold(
         table += [np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)]
     table = np.stack(table, axis=1)
     table = np.pad(table, ((0, 0), (0, pl.next_power_of_2(table.shape[1]) - table.shape[1])))
-    packs = tally.shape[0] // rows
+    packs = counted.shape[0] // rows
 
     def whole(a):
         return pl.BlockSpec(a.shape, lambda i: (0,) * a.ndim)
@@ -194,7 +194,7 @@ def fold(
         (col(steps.astype(jnp.uint32)), one),
         (jnp.asarray(table), cols(table.shape[1])),
     ]
-    args += [(tally[p * rows : (p + 1) * rows], line) for p in range(packs)]
+    args += [(counted[p * rows : (p + 1) * rows], line) for p in range(packs)]
     if ema is not None:
         args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
     first_ring = len(args)
