@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._layout import gathered
+from ._sharding import gathered
 
 _TWO_32 = 4294967296.0
 

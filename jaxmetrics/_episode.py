@@ -31,7 +31,7 @@ from ._reductions import Discounted
 
 ORDER = ("mean", "std", "sum", "max", "min", "last", "discounted")
 
-# Per reduction: what the slots `a` and `b` hold, and their values at episode start.
+# Per reduction: what the slots `value` and `aux` hold, and their values at episode start.
 SLOTS = {
     "mean": ("Welford mean", 0.0, "unused", 0.0),
     "std": ("Welford mean", 0.0, "Welford sum of squared deviations", 0.0),
@@ -44,11 +44,11 @@ SLOTS = {
 
 
 class EpisodeState(NamedTuple):
-    """Running episodes of every env; what `a` and `b` hold per row is `SLOTS`."""
+    """Running episodes of every env; what `value` and `aux` hold per row is `SLOTS`."""
 
     steps: jax.Array  # [M, E] int32: steps folded into the running episode (finite ones)
-    a: jax.Array  # [M, E] float: the reduction's running value (see SLOTS)
-    b: jax.Array  # [M, E] float: its second slot (see SLOTS), 0 where unused
+    value: jax.Array  # [M, E] float: the reduction's running value (see SLOTS)
+    aux: jax.Array  # [M, E] float: its auxiliary slot (see SLOTS), 0 where unused
     length: jax.Array  # [D, E] int32: the episode's steps so far, folded or not; D = 1
     # where the spec has discounted rows (their `t`), else 0
 
@@ -130,7 +130,7 @@ def _discounted(plan: EpisodePlan, ep: EpisodeState, x, fold) -> tuple[jax.Array
     factor = jnp.exp(hi) * (1 + (lo1 + lo2))
     # gamma^t * inf is inf even where gamma^t underflowed to 0 (only "propagate" folds it).
     term = jnp.where(jnp.isfinite(x), factor * x, x)
-    return kahan_add(ep.a, ep.b, jnp.where(fold, term, 0))
+    return kahan_add(ep.value, ep.aux, jnp.where(fold, term, 0))
 
 
 def step(
@@ -142,7 +142,7 @@ def step(
     `done`), and whether each env's episode has any folded step (`[M, E]` bool).
     """
     steps = ep.steps + fold.astype(jnp.int32)
-    a, b = ep.a, ep.b
+    a, b = ep.value, ep.aux
     # Every reduction's update on every row, each row then keeps its own (a select per
     # reduction, not a kernel per block of rows).
     nw = jnp.maximum(steps, 1).astype(plan.dtype)
@@ -185,4 +185,4 @@ def step(
 
 def running(plan: EpisodePlan, ep: EpisodeState) -> jax.Array:
     """Current value of every running episode `[M, E]` (NaN where it has no step yet)."""
-    return jnp.where(ep.steps > 0, _values(plan, ep.steps, ep.a, ep.b), jnp.nan)
+    return jnp.where(ep.steps > 0, _values(plan, ep.steps, ep.value, ep.aux), jnp.nan)

@@ -29,7 +29,7 @@ from . import _history, _tags
 from ._count import Count, to_int
 from ._emit import InGraphEmit
 from ._history import History
-from ._layout import mesh_of, placed, replicated
+from ._sharding import mesh_of, placed, replicated
 from ._metrics import Metrics
 from ._report import Record, RecordBuilder, Writer, check_writers, derived_tags
 from ._seeds import SeedsSummary, summary_tags
@@ -418,7 +418,7 @@ class Logger(AbstractContextManager):
         self._wrapper_offset = [0] * self.runs
         # Written records worth a word (steps that went back): warnings, not errors.
         self._notices: list[str] = []
-        self._env_steps_tag = _tags.tag(metrics._counter_prefix, "env_steps", "total")
+        self._env_steps_tag = _tags.tag(metrics._rows.counter_prefix, "env_steps", "total")
         self._compute = compute
         self._layout_id = _history.layout_id(type(metrics._spec)._fields[0], include_running)
         self._timers = Timers()

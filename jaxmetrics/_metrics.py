@@ -1,7 +1,5 @@
 """The `Metrics` spec: static configuration plus the pure functions over `MetricsState`."""
 
-import dataclasses
-import hashlib
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -9,27 +7,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _count, _episode, _reductions, _statistics, _stream, _tags
+from . import _checkpoint, _count, _episode, _rows, _stream, _tags
 from ._count import Count
-from ._layout import env_layout, like, state_mesh
-from ._spec import Groups, Logged, MetricSpec, Term, check_name, check_policy, parse_stats
-from ._state import MetricsState, spec_id
+from ._sharding import shard_count, like, state_mesh
+from ._spec import Groups, Logged, MetricSpec, Term, reported
+from ._state import MetricsState
 from ._tags import TagInfo
-
-BUILTIN_COUNTERS = ("env_steps", "episodes")
-GROUP_COUNTER = "ungrouped"
-# Counted per env shard in MetricsState.ended, one column each, in this order (the last
-# only with groups): a step updates them in one kernel, with no cross-device reduction.
-_SHARD_COUNTERS = ("env_steps", "episodes", GROUP_COUNTER)
-
-# Version of the MetricsState's array layout, part of the spec's identity: a checkpoint of
-# another layout is refused as another spec's instead of being misread. 2: running
-# episodes in three slots per env (`_episode.SLOTS`); EMA fields and window positions of
-# every stream row. 3: env steps counted per shard (`ended`); arrival steps per row.
-# 4: `ended` padded to whole multiples of the episode rows (`_stream.counts_width`); a
-# histogram's step counts kept (zero) in the state. 5: a ring slot (windows, EMA history)
-# holds its value's bits and its arrival stamp in one `uint32` array (`_stream.Ring.data`).
-STATE_LAYOUT = 5
 
 
 def _is_numeric(dtype) -> bool:
@@ -71,123 +54,6 @@ def _as_array(v: Any, what: str) -> jax.Array:
     if not _is_numeric(a.dtype):
         raise TypeError(f"{what}: got dtype {a.dtype}; {fix}.")
     return a
-
-
-def _canonical(x: Any) -> Any:
-    """`x` in a form whose repr is the same in every process: sets sorted (their order
-    follows string hashing, which is salted per process), dataclasses as field tuples."""
-    if dataclasses.is_dataclass(x) and not isinstance(x, type):
-        fields = dataclasses.fields(x)
-        return (type(x).__name__, tuple((f.name, _canonical(getattr(x, f.name))) for f in fields))
-    if isinstance(x, set | frozenset):
-        return ("set", tuple(sorted((_canonical(v) for v in x), key=repr)))
-    if isinstance(x, Mapping):
-        return ("map", tuple(sorted(((k, _canonical(v)) for k, v in x.items()), key=repr)))
-    if isinstance(x, list | tuple):
-        return tuple(_canonical(v) for v in x)
-    return x
-
-
-def _count_overflow(row: dict[str, Any]) -> dict[str, Any]:
-    """Adds to a row's `nonfinite` count the statistics that overflowed the dtype: a
-    period statistic that is not finite although the period has values (all finite: the
-    others were left out), or an EMA or window statistic that is infinite (values near
-    float32's limit: their sum is inf, their mean NaN), or a quantile that fell on values
-    outside its sketch's magnitude range. Such a statistic is not written, so the count
-    is what makes the loss visible (warned about or raised at flush)."""
-    has = ~_count.is_zero(row["count"])
-    quantiles = [k for k in row if _statistics.get(k).source == "quantiles"]
-    bad = [has & ~jnp.isfinite(row[k]) for k in ("mean", "std", "sum", *quantiles)]
-    bad += [
-        jnp.isinf(v)
-        for k, v in row.items()
-        if (k == "ema" or k.startswith("window_")) and k != "window_values"
-    ]
-    n = jnp.sum(jnp.stack(bad), dtype=jnp.uint32)
-    return {**row, "nonfinite": _count.merge(row["nonfinite"], Count(jnp.uint32(0), n))}
-
-
-def _flatten_terms(
-    terms: Mapping[str, Any], policy: str, default_groups: Groups | None
-) -> tuple[list[Term], list[MetricSpec], list[Groups | None]]:
-    """The terms, their metrics (one per output) and each metric's grouping."""
-    if not isinstance(terms, Mapping):
-        raise TypeError(
-            f"terms must be a dict of name -> jaxmetrics.Term (or function), got "
-            f"{type(terms).__name__}."
-        )
-    out_terms, specs, groupings = [], [], []
-    for name, t in terms.items():
-        where = f"term {name!r}"
-        check_name(name, where)
-        if not isinstance(t, Term):
-            if not callable(t):
-                raise TypeError(f"{where}: expected jaxmetrics.Term or a function, got {t!r}.")
-            t = Term(t)
-        if not callable(t.fn):
-            raise TypeError(f"{where}: fn must be callable, got {t.fn!r}.")
-        if not isinstance(t.params, Mapping):
-            raise TypeError(f"{where}: params must be a dict of keyword arguments.")
-        outputs = (None,) if t.outputs is None else tuple(t.outputs)
-        if t.outputs is not None:
-            if isinstance(t.outputs, str) or not outputs:
-                raise ValueError(
-                    f"{where}: outputs must be a non-empty sequence of names, got {t.outputs!r}."
-                )
-            for o in outputs:
-                check_name(o, where)
-            if len(set(outputs)) != len(outputs):
-                raise ValueError(f"{where}: duplicate output names in {outputs!r}.")
-        if isinstance(t.reduce, Mapping):
-            if t.outputs is None:
-                raise ValueError(
-                    f"{where}: a dict `reduce` needs `outputs`; for one output use a string."
-                )
-            extra = set(t.reduce) - set(outputs)
-            if extra:
-                raise ValueError(
-                    f"{where}: reduce names unknown outputs {sorted(extra)}; outputs are "
-                    f"{list(outputs)}."
-                )
-            reduces = {o: t.reduce.get(o, "mean") for o in outputs}
-        else:
-            reduces = {o: t.reduce for o in outputs}
-        reduces = {o: _reductions.check(r, where) for o, r in reduces.items()}
-        stats = parse_stats(t.stats, where)
-        nonfinite = check_policy(t.nonfinite if t.nonfinite is not None else policy, where)
-        grouping = t.groups if t.groups is not None else default_groups
-        if grouping is not None and not isinstance(grouping, Groups):
-            raise TypeError(
-                f"{where}: groups must be jaxmetrics.groups(fn, names), got {grouping!r}."
-            )
-        for o in outputs:
-            metric = name if o is None else f"{name}/{o}"
-            specs.append(MetricSpec(metric, name, reduces[o], stats, nonfinite))
-            groupings.append(grouping)
-        out_terms.append(t)
-    return out_terms, specs, groupings
-
-
-def _with_groups(spec: MetricSpec, grouping: Groups | None) -> list[MetricSpec]:
-    """A metric's report rows: the metric over all envs, then one row per group."""
-    names = () if grouping is None else grouping.names
-    return [spec] + [dataclasses.replace(spec, name=f"{spec.name}/{g}", group=g) for g in names]
-
-
-def _flatten_logged(logged: Mapping[str, Any] | Sequence[str], policy: str) -> list[MetricSpec]:
-    if isinstance(logged, str):
-        raise TypeError(f"logged must be a dict or a list of names, got the string {logged!r}.")
-    if not isinstance(logged, Mapping):
-        logged = {n: Logged() for n in logged}
-    specs = []
-    for name, spec in logged.items():
-        where = f"logged value {name!r}"
-        check_name(name, where)
-        if not isinstance(spec, Logged):
-            raise TypeError(f"{where}: expected jaxmetrics.Logged(...), got {spec!r}.")
-        nonfinite = check_policy(spec.nonfinite if spec.nonfinite is not None else policy, where)
-        specs.append(MetricSpec(name, name, None, parse_stats(spec.stats, where), nonfinite))
-    return specs
 
 
 class Metrics:
@@ -237,106 +103,31 @@ class Metrics:
         groups: Groups | None = None,
         dtype: Any = jnp.float32,
     ):
-        check_policy(nonfinite, "Metrics(nonfinite=...)")
-        dt = jnp.dtype(dtype)
-        if not jnp.issubdtype(dt, jnp.floating):
-            raise TypeError(f"Metrics(dtype=...) must be a float dtype, got {dt}.")
-        if jnp.finfo(dt).bits < 32:
-            raise ValueError(
-                f"Metrics(dtype={dt}): statistics kept in {dt} are wrong past a few hundred "
-                "values (in bfloat16 the mean of 1..1000 comes out as 256; in float16 the "
-                "sum overflows at 65504). Use float32 (the default) or float64; terms may "
-                f"still return {dt} values."
-            )
-        if groups is not None and not isinstance(groups, Groups):
-            raise TypeError(
-                f"Metrics(groups=...) takes jaxmetrics.groups(fn, names), got {groups!r}."
-            )
-        self._terms, ep_specs, ep_groupings = _flatten_terms(terms or {}, nonfinite, groups)
-        # Distinct groupings (each evaluated once per step), with the first term using it.
-        self._groupings: tuple[Groups, ...] = ()
-        self._grouping_terms: tuple[str, ...] = ()
-        for spec, g in zip(ep_specs, ep_groupings):
-            if g is not None and g not in self._groupings:
-                self._groupings += (g,)
-                self._grouping_terms += (spec.term,)
-        lg_specs = _flatten_logged(logged or {}, nonfinite)
-        if isinstance(counters, str):
-            raise TypeError(f"counters must be a list of names, got the string {counters!r}.")
-        user_counters = tuple(check_name(c, "counter") for c in counters)
-        builtin = BUILTIN_COUNTERS if ep_specs else ()
-        builtin += (GROUP_COUNTER,) if self._groupings else ()
-        clash = set(user_counters) & set(builtin)
-        if clash:
-            raise ValueError(f"counters {sorted(clash)} are built in; choose other names.")
-        if len(set(user_counters)) != len(user_counters):
-            raise ValueError(f"duplicate counter names in {list(user_counters)}.")
-        self.counter_names = builtin + user_counters
-        # "env_steps", "episodes" and "ungrouped" are counted per env shard
-        # (MetricsState.ended).
-        self._shard_counters = tuple(c for c in _SHARD_COUNTERS if c in builtin)
-        self._stored_counters = tuple(c for c in self.counter_names if c not in _SHARD_COUNTERS)
-        for arg, prefix in (
-            ("episode_prefix", episode_prefix),
-            ("logged_prefix", logged_prefix),
-            ("counter_prefix", counter_prefix),
-        ):
-            check_name(prefix, f"Metrics({arg}=...)")
-        self.prefixes = {"episode": episode_prefix, "logged": logged_prefix}
-        self._counter_prefix = counter_prefix
-        self.dtype = dt
-
-        # Episode rows sorted by reduction (stable): each reduction is one block.
-        order = sorted(
-            range(len(ep_specs)),
-            key=lambda i: _episode.ORDER.index(_reductions.name(ep_specs[i].reduce)),
+        rows = _rows.build(
+            terms,
+            logged,
+            counters,
+            nonfinite,
+            episode_prefix,
+            logged_prefix,
+            counter_prefix,
+            groups,
+            dtype,
         )
-        self._ep_rows = tuple(ep_specs[i] for i in order)
-        # Per episode row, the index of its grouping in self._groupings (None: ungrouped).
-        self._ep_row_groups = tuple(
-            None if ep_groupings[i] is None else self._groupings.index(ep_groupings[i])
-            for i in order
-        )
-        # Report rows: each metric, then its groups; in definition order for the tag table.
-        self._ep_defined = tuple(
-            r for spec, g in zip(ep_specs, ep_groupings) for r in _with_groups(spec, g)
-        )
-        stream_rows = [r for i in order for r in _with_groups(ep_specs[i], ep_groupings[i])]
-        # Per report row: its episode row, its grouping (len(groupings): none) and group.
-        src, kind, group = [], [], []
-        for r, k in enumerate(self._ep_row_groups):
-            names = () if k is None else self._groupings[k].names
-            src += [r] * (1 + len(names))
-            kind += [len(self._groupings)] + [k] * len(names)  # type: ignore[list-item]
-            group += [0, *range(len(names))]
-        self._report_rows = tuple(np.asarray(a, np.int32) for a in (src, kind, group))
-        self._episode_plan = _episode.EpisodePlan.build([s.reduce for s in self._ep_rows], dt)
-        self._ep_plan = _stream.StreamPlan.build(stream_rows, dt) if ep_specs else None
-        self._lg_plan = _stream.StreamPlan.build(lg_specs, dt) if lg_specs else None
-        self._lg_index = {s.name: i for i, s in enumerate(lg_specs)}
-        self._ep_propagate = np.array([s.nonfinite == "propagate" for s in self._ep_rows], bool)
-        self._lg_propagate = np.array([s.nonfinite == "propagate" for s in lg_specs], bool)
-
-        infos: list[TagInfo] = []
-        for group, specs in (("episode", self._ep_defined), ("logged", lg_specs)):
-            for s in specs:
-                for stat in _statistics.reported(s.stats):
-                    infos.append(_tags.info(self.prefixes[group], group, s.name, stat))
-        for c in self.counter_names:
-            infos.append(_tags.info(counter_prefix, "counter", c, "total"))
-        _tags.check_unique((i.tag, _tags.origin(i)) for i in infos)
-        self.tags: tuple[TagInfo, ...] = tuple(infos)
-        config = (self._ep_defined, lg_specs, self.counter_names, self.prefixes, counter_prefix)
-        canon = repr(_canonical((config, dt.name, STATE_LAYOUT))).encode()
-        self._spec = spec_id(hashlib.sha256(canon).hexdigest())
+        self._rows = rows
+        self._spec = rows.identity
+        self.counter_names = rows.counter_names
+        self.prefixes = rows.prefixes
+        self.dtype = rows.dtype
+        self.tags: tuple[TagInfo, ...] = rows.tags
 
     # ------------------------------------------------------------------ static views
 
     @property
     def metric_specs(self) -> dict[str, MetricSpec]:
         """Every metric by name: episode metrics (`term` or `term/output`) and logged values."""
-        out = {s.name: s for s in self._ep_defined}
-        out.update({s.name: s for s in (self._lg_plan.rows if self._lg_plan else ())})
+        out = {s.name: s for s in self._rows.ep_defined}
+        out.update({s.name: s for s in (self._rows.lg_plan.rows if self._rows.lg_plan else ())})
         return out
 
     def histogram_edges(self, tag: str) -> np.ndarray:
@@ -371,7 +162,7 @@ class Metrics:
         if num_envs < 0:
             raise ValueError(f"num_envs must be >= 0, got {num_envs}.")
         num_envs = int(num_envs)
-        shards = env_layout(sharding, num_envs)
+        shards = shard_count(sharding, num_envs)
         if num_envs == 0 and sharding is None:
             shards = 0  # no shard at all: concatenating it in `merge` changes nothing
         if not isinstance(sharding, jax.sharding.NamedSharding):
@@ -409,7 +200,7 @@ class Metrics:
             )
         mesh = sharding.mesh
         env_axes = tuple(sharding.spec)[0] if tuple(sharding.spec) else None
-        return self._fresh_layout(
+        return self._per_field(
             jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(None, env_axes)),
             jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(env_axes)),
             jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()),
@@ -419,30 +210,32 @@ class Metrics:
         """A zero state; `ema_history` keeps each EMA row's newest values even with one
         shard, for a state that will be merged with other devices' (one per device under
         `pmap`), as a sharded state keeps them."""
-        has_ep = self._ep_plan is not None
-        n_counters = len(self._stored_counters)
+        has_ep = self._rows.ep_plan is not None
+        n_counters = len(self._rows.stored_counters)
 
         def per_shard(x: jax.Array) -> jax.Array:
             return jnp.broadcast_to(x, (shards, *x.shape))
 
         return MetricsState(
-            running=_episode.init(self._episode_plan, num_envs) if has_ep else None,
-            finished=jax.tree.map(per_shard, _stream.init(self._ep_plan, ema_history or shards > 1))
-            if has_ep
-            else None,
-            ended=_count.zeros(
-                (shards, _stream.counts_width(self._ep_plan, len(self._shard_counters)))
+            running=_episode.init(self._rows.episode_plan, num_envs) if has_ep else None,
+            finished=jax.tree.map(
+                per_shard, _stream.init(self._rows.ep_plan, ema_history or shards > 1)
             )
             if has_ep
             else None,
-            logged=_stream.init(self._lg_plan) if self._lg_plan else None,
+            shard_counts=_count.zeros(
+                (shards, _stream.counts_width(self._rows.ep_plan, len(self._rows.shard_counters)))
+            )
+            if has_ep
+            else None,
+            logged=_stream.init(self._rows.lg_plan) if self._rows.lg_plan else None,
             counters=_count.zeros((n_counters,)) if n_counters else None,
             spec=self._spec,
         )
 
-    def _fresh_layout(self, running: Any, per_shard: Any, replicated: Any) -> MetricsState:
+    def _per_field(self, running: Any, per_shard: Any, replicated: Any) -> MetricsState:
         """A MetricsState-shaped tree of one leaf value per field group."""
-        plan = self._ep_plan
+        plan = self._rows.ep_plan
         has_ep = plan is not None
 
         def fill(tree: Any, v: Any) -> Any:
@@ -452,8 +245,8 @@ class Metrics:
         return MetricsState(
             running=fill(shapes.running, running) if has_ep else None,
             finished=fill(shapes.finished, per_shard) if has_ep else None,
-            ended=fill(shapes.ended, per_shard) if has_ep else None,
-            logged=fill(shapes.logged, replicated) if self._lg_plan else None,
+            shard_counts=fill(shapes.shard_counts, per_shard) if has_ep else None,
+            logged=fill(shapes.logged, replicated) if self._rows.lg_plan else None,
             counters=fill(shapes.counters, replicated) if shapes.counters is not None else None,
             spec=self._spec,
         )
@@ -477,7 +270,7 @@ class Metrics:
           >>> metrics.to_host(metrics.compute(restored))["Train/loss"]
           2.0
         """
-        return jax.tree.map(lambda x: None if x.size == 0 else x, state)
+        return _checkpoint.to_checkpoint(state)
 
     def from_checkpoint(self, saved: MetricsState, target: MetricsState) -> MetricsState:
         """A state restored from `to_checkpoint`'s tree: its None leaves become `target`'s
@@ -488,29 +281,7 @@ class Metrics:
         tree of another structure (orbax's target-less restore gives plain dicts), shape
         or dtype is refused here, before any of it is used.
         """
-        target = self._check_state(target, "from_checkpoint")
-        want = self.to_checkpoint(target)
-        if not isinstance(saved, MetricsState) or (
-            jax.tree.structure(saved) != jax.tree.structure(want)
-        ):
-            raise ValueError(
-                f"from_checkpoint: the saved tree ({type(saved).__name__}) is not the "
-                "MetricsState that to_checkpoint(target) gives. Restore the checkpoint with "
-                "its target, e.g. orbax's ckpt.restore(path, metrics.to_checkpoint("
-                "metrics.init(num_envs))), with the spec, num_envs and sharding it was "
-                "saved with."
-            )
-        for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(saved), jax.tree.leaves(want)):
-            if jnp.shape(x) != y.shape or jnp.result_type(x) != y.dtype:
-                where = jax.tree_util.keystr(path)
-                raise ValueError(
-                    f"from_checkpoint: {where} is {jnp.result_type(x)}{list(jnp.shape(x))}, "
-                    f"but the target has {y.dtype}{list(y.shape)}: pass init() of the spec, "
-                    "num_envs and sharding the checkpoint was made with."
-                )
-        it = iter(jax.tree.leaves(saved))
-        leaves = [x if x.size == 0 else next(it) for x in jax.tree.leaves(target)]
-        return jax.tree.unflatten(jax.tree.structure(target), leaves)
+        return _checkpoint.from_checkpoint(saved, self._check_state(target, "from_checkpoint"))
 
     def empty(self) -> MetricsState:
         """The identity of `merge`: a state of zero envs with nothing recorded."""
@@ -533,7 +304,7 @@ class Metrics:
 
     def _evaluate(self, step_input: Any, num_envs: int) -> jax.Array:
         values: dict[str, jax.Array] = {}
-        for name, term in zip(self._term_names(), self._terms):
+        for name, term in zip(self._term_names(), self._rows.terms):
             out = term.fn(step_input, **term.params)
             if term.outputs is None:
                 if isinstance(out, Mapping):
@@ -555,11 +326,11 @@ class Metrics:
                 )
             for o in term.outputs:
                 values[f"{name}/{o}"] = self._check_value(out[o], f"{name}/{o}", num_envs)
-        return jnp.stack([values[s.name] for s in self._ep_rows])
+        return jnp.stack([values[s.name] for s in self._rows.ep_rows])
 
     def _term_names(self) -> list[str]:
         seen: list[str] = []
-        for s in self._ep_defined:
+        for s in self._rows.ep_defined:
             if s.term not in seen:
                 seen.append(s.term)
         return seen
@@ -619,7 +390,7 @@ class Metrics:
                 "NaN, -1) has no single meaning; Brax's State.done is 0.0/1.0: pass "
                 "state.done.astype(bool)."
             )
-        shards = state.ended.hi.shape[0]  # type: ignore[union-attr]
+        shards = state.shard_counts.hi.shape[0]  # type: ignore[union-attr]
         if num_envs == 0:
             raise ValueError(
                 "update: this state has no envs: init(0) and empty() give the identity of "
@@ -634,10 +405,10 @@ class Metrics:
         done = done.astype(jnp.bool_) if done.dtype != jnp.bool_ else done
         x = like(self._evaluate(step_input, num_envs), state.running.steps, "the term values")
         done = like(done, state.running.steps[0], "done")
-        prop = jnp.asarray(self._ep_propagate)[:, None]
+        prop = jnp.asarray(self._rows.ep_propagate)[:, None]
         finite = jnp.isfinite(x)
         running, values, any_step = _episode.step(
-            self._episode_plan, state.running, x, finite | prop, done
+            self._rows.episode_plan, state.running, x, finite | prop, done
         )
         ended = done[None, :] & any_step
         ok = ended & (jnp.isfinite(values) | prop)
@@ -659,18 +430,19 @@ class Metrics:
             # reduces within a shard only.
             return jnp.moveaxis(a.reshape(a.shape[0], shards, num_envs // shards), 1, 0)
 
-        plan = self._ep_plan
+        plan = self._rows.ep_plan
         assert plan is not None
 
-        # Per shard (`_SHARD_COUNTERS`): env steps, episodes ended, and those whose group
-        # index is out of range, counted in the fold's own reduction.
+        # Per shard (`_rows.SHARD_COUNTERS`): env steps, episodes ended, and those whose
+        # group index is out of range, counted in the fold's own reduction.
         shard_counts = [jnp.ones_like(done), done]
         if group_ids:
             out_of_range = [
-                done & ((i < 0) | (i >= len(g.names))) for g, i in zip(self._groupings, group_ids)
+                done & ((i < 0) | (i >= len(g.names)))
+                for g, i in zip(self._rows.groupings, group_ids)
             ]
             shard_counts.append(jnp.sum(jnp.stack(out_of_range), axis=0, dtype=jnp.int32))
-        tally = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
+        counted = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
 
         def fold(st, v, m, n, t, e):
             return _stream.add_with_counts(plan, st, v, m, n, t, e, fused=shards == 1)
@@ -680,22 +452,22 @@ class Metrics:
             by_shard(values),
             by_shard(ok),
             by_shard(bad),
-            by_shard(tally),
-            state.ended,
+            by_shard(counted),
+            state.shard_counts,
         )
         if shards == 1:
             # One shard: the plain fold (a vmap of size 1 still batches its scatters).
             first = jax.tree.map(lambda a: a[0], args)
-            finished, ended = jax.tree.map(lambda a: a[None], fold(*first))
+            finished, counts = jax.tree.map(lambda a: a[None], fold(*first))
         else:
-            finished, ended = jax.vmap(fold)(*args)
-        return state._replace(running=running, finished=finished, ended=ended)
+            finished, counts = jax.vmap(fold)(*args)
+        return state._replace(running=running, finished=finished, shard_counts=counts)
 
     def _group_ids(self, step_input: Any, num_envs: int) -> list[tuple[jax.Array, str]]:
         """Each grouping's group index per env (`[num_envs]` int32), checked, with where
         it comes from (for messages)."""
         out = []
-        for g, term in zip(self._groupings, self._grouping_terms):
+        for g, term in zip(self._rows.groupings, self._rows.grouping_terms):
             where = f"the groups {list(g.names)} of term {term!r}"
             v = g.fn(step_input, **g.params)
             host = None if isinstance(v, jax.Array | jax.core.Tracer) else np.asarray(v)
@@ -725,9 +497,9 @@ class Metrics:
         """Episode rows `[M, E]` as report rows: each metric over all envs, then (for a
         grouped metric) once per group, masked to the envs in that group. One compare
         per grouping; no work per group beyond the elementwise mask."""
-        if not self._groupings:
+        if not self._rows.groupings:
             return values, ok, bad
-        src, kind, group = self._report_rows
+        src, kind, group = self._rows.report_rows
         # Row K of `ids` is 0 for every env: the overall rows match it as group 0.
         ids = jnp.concatenate([jnp.stack(group_ids), jnp.zeros_like(group_ids[0])[None]])
         match = jnp.take(ids, kind, axis=0) == jnp.asarray(group)[:, None]
@@ -749,11 +521,11 @@ class Metrics:
             raise TypeError(
                 f"log: values must be a dict name -> value, got {type(values).__name__}."
             )
-        unknown = sorted(set(values) - set(self._lg_index))
+        unknown = sorted(set(values) - set(self._rows.lg_index))
         if unknown:
             raise ValueError(
                 f"log: unknown logged names {unknown}; declare them in "
-                f"Metrics(logged=...). Known: {sorted(self._lg_index)}."
+                f"Metrics(logged=...). Known: {sorted(self._rows.lg_index)}."
             )
         flat = {}
         for name, v in values.items():
@@ -762,19 +534,19 @@ class Metrics:
                 flat[name] = a.reshape(-1).astype(self.dtype)
         if not flat:
             return state
-        assert self._lg_plan is not None and state.logged is not None
+        assert self._rows.lg_plan is not None and state.logged is not None
         width = max(a.shape[0] for a in flat.values())
-        rows = len(self._lg_plan.rows)
+        rows = len(self._rows.lg_plan.rows)
         v = jnp.zeros((rows, width), self.dtype)
         m = jnp.zeros((rows, width), jnp.bool_)
         for name, a in flat.items():
-            i = self._lg_index[name]
+            i = self._rows.lg_index[name]
             v = v.at[i, : a.shape[0]].set(a)
             m = m.at[i, : a.shape[0]].set(True)
         finite = jnp.isfinite(v)
-        ok = m & (finite | jnp.asarray(self._lg_propagate)[:, None])
+        ok = m & (finite | jnp.asarray(self._rows.lg_propagate)[:, None])
         bad = (m & ~finite).astype(jnp.int32)
-        logged = _stream.add(self._lg_plan, state.logged, v, ok, bad)
+        logged = _stream.add(self._rows.lg_plan, state.logged, v, ok, bad)
         return state._replace(logged=logged)
 
     def increment(self, state: MetricsState, name: str, by: Any = 1) -> MetricsState:
@@ -796,9 +568,9 @@ class Metrics:
             raise TypeError(
                 f"increment: `by` must be a scalar int, got {by.dtype}{list(by.shape)}."
             )
-        if name in self._shard_counters:
+        if name in self._rows.shard_counters:
             raise ValueError(f"increment: {name!r} is counted by update; it cannot be incremented.")
-        j = self._stored_counters.index(name)
+        j = self._rows.stored_counters.index(name)
         assert state.counters is not None
         return state._replace(counters=_count.add_at(state.counters, j, by))
 
@@ -806,12 +578,14 @@ class Metrics:
         """Starts a new flush period: period statistics clear; windows, EMA, counters and
         running episodes carry on."""
         state = self._check_state(state, "reset_period")
-        plan = self._ep_plan
+        plan = self._rows.ep_plan
         return state._replace(
             finished=jax.vmap(lambda st: _stream.reset_period(plan, st))(state.finished)
             if plan
             else None,
-            logged=_stream.reset_period(self._lg_plan, state.logged) if self._lg_plan else None,
+            logged=_stream.reset_period(self._rows.lg_plan, state.logged)
+            if self._rows.lg_plan
+            else None,
         )
 
     def merge(self, a: MetricsState, b: MetricsState) -> MetricsState:
@@ -829,31 +603,31 @@ class Metrics:
         """
         a = self._check_state(a, "merge")
         b = self._check_state(b, "merge")
-        finished, ended = None, None
-        if self._ep_plan is not None:
-            finished, ended = self._merge_shards(a, b)
+        finished, counts = None, None
+        if self._rows.ep_plan is not None:
+            finished, counts = self._merge_shards(a, b)
         return MetricsState(
             running=None
             if a.running is None
             else jax.tree.map(lambda x, y: jnp.concatenate([x, y], axis=-1), a.running, b.running),
             finished=finished,
-            ended=ended,
+            shard_counts=counts,
             logged=None
-            if self._lg_plan is None
-            else _stream.merge(self._lg_plan, a.logged, b.logged),
+            if self._rows.lg_plan is None
+            else _stream.merge(self._rows.lg_plan, a.logged, b.logged),
             counters=None if a.counters is None else _count.merge(a.counters, b.counters),
             spec=self._spec,
         )
 
     def _merge_shards(self, a: MetricsState, b: MetricsState) -> tuple[Any, Count]:
-        plan = self._ep_plan
-        assert plan is not None and a.ended is not None and b.ended is not None
-        sa, sb = a.ended.hi.shape[0], b.ended.hi.shape[0]
+        plan = self._rows.ep_plan
+        assert plan is not None and a.shard_counts is not None and b.shard_counts is not None
+        sa, sb = a.shard_counts.hi.shape[0], b.shard_counts.hi.shape[0]
         if sa == 0 or sb == 0:
-            return (b.finished, b.ended) if sa == 0 else (a.finished, a.ended)
+            return (b.finished, b.shard_counts) if sa == 0 else (a.finished, a.shard_counts)
         per_a = a.running.steps.shape[-1] // sa  # type: ignore[union-attr]
         per_b = b.running.steps.shape[-1] // sb  # type: ignore[union-attr]
-        fa, fb, ea, eb = a.finished, b.finished, a.ended, b.ended
+        fa, fb, ea, eb = a.finished, b.finished, a.shard_counts, b.shard_counts
         if per_a != per_b:
             # Shards of different sizes cannot stay blocks of one env axis: one shard.
             one = _stream.merge(plan, _stream.combine(plan, fa), _stream.combine(plan, fb))
@@ -883,39 +657,39 @@ class Metrics:
         state = self._check_state(state, "compute")
         out: dict[str, jax.Array | Count] = {}
         finished = None
-        if self._ep_plan is not None:
-            finished = _stream.combine(self._ep_plan, state.finished)  # type: ignore[arg-type]
+        if self._rows.ep_plan is not None:
+            finished = _stream.combine(self._rows.ep_plan, state.finished)  # type: ignore[arg-type]
         for group, plan, st in (
-            ("episode", self._ep_plan, finished),
-            ("logged", self._lg_plan, state.logged),
+            ("episode", self._rows.ep_plan, finished),
+            ("logged", self._rows.lg_plan, state.logged),
         ):
             if plan is None:
                 continue
             rows = [
-                row if spec.nonfinite == "propagate" else _count_overflow(row)
+                row if spec.nonfinite == "propagate" else _stream.count_overflow(row)
                 for spec, row in zip(plan.rows, _stream.compute(plan, st))
             ]
             for i, spec in enumerate(plan.rows):
-                for stat in _statistics.reported(spec.stats):
+                for stat in reported(spec.stats):
                     out[_tags.tag(self.prefixes[group], spec.name, stat)] = rows[i][stat]
         if include_running and state.running is not None:
-            run = _episode.running(self._episode_plan, state.running)
+            run = _episode.running(self._rows.episode_plan, state.running)
             has = ~jnp.isnan(run)
             n = jnp.sum(has, axis=1)
             mean = jnp.sum(jnp.where(has, run, 0), axis=1) / jnp.maximum(n, 1).astype(self.dtype)
             mean = jnp.where(n > 0, mean, jnp.nan)
-            for i, spec in enumerate(self._ep_rows):
+            for i, spec in enumerate(self._rows.ep_rows):
                 out[_tags.tag(self.prefixes["episode"], spec.name, "running")] = mean[i]
-        shard_totals = _count.total(state.ended) if state.ended is not None else None
+        shard_totals = _count.total(state.shard_counts) if state.shard_counts is not None else None
         for c in self.counter_names:
-            if c in self._shard_counters:
-                j = self._shard_counters.index(c)
+            if c in self._rows.shard_counters:
+                j = self._rows.shard_counters.index(c)
                 value = Count(shard_totals.hi[j], shard_totals.lo[j])  # type: ignore[union-attr]
             else:
                 assert state.counters is not None
-                j = self._stored_counters.index(c)
+                j = self._rows.stored_counters.index(c)
                 value = Count(state.counters.hi[j], state.counters.lo[j])
-            out[_tags.tag(self._counter_prefix, c, "total")] = value
+            out[_tags.tag(self._rows.counter_prefix, c, "total")] = value
         return out
 
     # ------------------------------------------------------------------ host side
@@ -943,8 +717,10 @@ class Metrics:
           "raise") and the count. A `Logger` warns or raises accordingly, naming the run
           and the step.
         """
-        specs = {("episode", s.name): s for s in self._ep_defined}
-        specs.update({("logged", s.name): s for s in (self._lg_plan.rows if self._lg_plan else ())})
+        specs = {("episode", s.name): s for s in self._rows.ep_defined}
+        specs.update(
+            {("logged", s.name): s for s in (self._rows.lg_plan.rows if self._rows.lg_plan else ())}
+        )
         out = []
         for i in self.tags:
             count = host_report.get(i.tag, 0) if i.stat == "nonfinite" else 0

@@ -87,7 +87,7 @@ class Reporter:
         self.metrics, self.logger = metrics, logger
         self.report_every = None if report_every is None else int(report_every)
         self.axis_name = axis_name
-        self._env_steps = metrics._shard_counters.index("env_steps")
+        self._env_steps = metrics._rows.shard_counters.index("env_steps")
 
     def init(self, num_envs: int) -> MetricsState:
         """The fresh state of one batch. With a device axis it keeps each EMA's newest
@@ -130,8 +130,8 @@ class Reporter:
 
     def _step(self, state: MetricsState) -> Count:
         """The report's step: env steps over every env of the state."""
-        assert state.ended is not None
-        totals = _count.total(state.ended)
+        assert state.shard_counts is not None
+        totals = _count.total(state.shard_counts)
         return Count(totals.hi[self._env_steps], totals.lo[self._env_steps])
 
     def _gathered(self, state: MetricsState, name: str) -> MetricsState:
@@ -147,5 +147,7 @@ class Reporter:
                 lambda x: jax.lax.all_gather(x, name, axis=x.ndim - 1, tiled=True), running
             )
         return state._replace(
-            running=running, finished=gather(state.finished), ended=gather(state.ended)
+            running=running,
+            finished=gather(state.finished),
+            shard_counts=gather(state.shard_counts),
         )

@@ -437,3 +437,24 @@ class MetricSpec:
     stats: StatSpec
     nonfinite: str
     group: str | None = None  # the group of a per-group row (`<metric>/<group>`)
+
+
+def reported(stats: StatSpec) -> list[str]:
+    """The statistics a metric with these report statistics has in `Metrics.compute`,
+    in report order."""
+    wants = {
+        "simple": lambda s: s.name in stats.simple,
+        "ema": lambda s: stats.ema is not None,
+        "window": lambda s: stats.window is not None,
+        "histogram": lambda s: stats.histogram is not None,
+        "always": lambda s: True,
+    }
+    out = []
+    for s in _statistics.STATISTICS:
+        if s.source == "percentile" and stats.window is not None:
+            out += [_statistics.percentile(p) for p in stats.window.percentiles]
+        elif s.source == "quantiles" and stats.quantiles is not None:
+            out += [_statistics.quantile(p) for p in stats.quantiles.levels]
+        elif s.source in wants and wants[s.source](s):
+            out.append(s.name)
+    return out

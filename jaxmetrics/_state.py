@@ -22,7 +22,7 @@ class MetricsState(NamedTuple):
     finished: StreamState | None  # per shard: report statistics over finished episodes
     # [shards, K] lifetime counts per shard: env steps, episodes ended (done flags), and
     # with groups episodes of no group; then zeros up to a multiple of the episode rows.
-    ended: Count | None
+    shard_counts: Count | None
     logged: StreamState | None  # report statistics over logged values
     counters: Count | None  # [C] lifetime counters fed by `increment`
     spec: tuple  # the spec's identity, in the tree structure only (see `spec_id`)

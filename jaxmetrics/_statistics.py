@@ -1,15 +1,12 @@
 """The registry of statistics: every `TagInfo.stat` the library writes, in report order.
 
-Tag suffixes (`_tags`), the statistics a metric reports (`reported`), how a host record
+Tag suffixes (`_tags`), the statistics a metric reports (`_spec.reported`), how a host record
 holds each value (`_report`) and the console's columns derive from `STATISTICS`; nothing
 else lists statistic names. (`_stream.compute` produces the in-graph values under these
 names; `tests/test_layout.py` checks that the two agree.)
 """
 
-from typing import TYPE_CHECKING, NamedTuple
-
-if TYPE_CHECKING:
-    from ._spec import StatSpec
+from typing import NamedTuple
 
 
 class Statistic(NamedTuple):
@@ -29,6 +26,11 @@ class Statistic(NamedTuple):
         "exact": an exact int; "sparse": an exact int written from its first non-zero
         value on; "histogram": `HistogramData`; "window": the finite window contents.
       column: the `ConsoleWriter` column it is shown in (None: the last column).
+      overflow: when the value counts as an overflow of the dtype (added to the metric's
+        `nonfinite` count and not written; see `_stream.count_overflow`). "period": not
+        finite although the period has values (non-finite values were left out, so the
+        statistic itself overflowed); "inf": infinite (values near the dtype's limit);
+        None: never.
     """
 
     name: str
@@ -36,27 +38,28 @@ class Statistic(NamedTuple):
     source: str
     host: str
     column: str | None = None
+    overflow: str | None = None
 
 
 _PERCENTILE = "window_p{p:g}"
 _QUANTILE = "q{p:g}"
 
 STATISTICS = (
-    Statistic("mean", "", "simple", "float", "mean"),
-    Statistic("std", "/std", "simple", "float", "std"),
+    Statistic("mean", "", "simple", "float", "mean", overflow="period"),
+    Statistic("std", "/std", "simple", "float", "std", overflow="period"),
     Statistic("min", "/min", "simple", "float", "min"),
     Statistic("max", "/max", "simple", "float", "max"),
-    Statistic("sum", "/sum", "simple", "float"),
+    Statistic("sum", "/sum", "simple", "float", overflow="period"),
     Statistic("count", "/count", "simple", "exact", "count"),
-    Statistic("ema", "/ema", "ema", "float"),
-    Statistic("window_mean", "/window_mean", "window", "float"),
-    Statistic("window_std", "/window_std", "window", "float"),
-    Statistic("window_min", "/window_min", "window", "float"),
-    Statistic("window_max", "/window_max", "window", "float"),
+    Statistic("ema", "/ema", "ema", "float", overflow="inf"),
+    Statistic("window_mean", "/window_mean", "window", "float", overflow="inf"),
+    Statistic("window_std", "/window_std", "window", "float", overflow="inf"),
+    Statistic("window_min", "/window_min", "window", "float", overflow="inf"),
+    Statistic("window_max", "/window_max", "window", "float", overflow="inf"),
     Statistic("window_values", "/window_values", "window", "window"),
-    Statistic(_PERCENTILE, "/" + _PERCENTILE, "percentile", "float"),
+    Statistic(_PERCENTILE, "/" + _PERCENTILE, "percentile", "float", overflow="inf"),
     Statistic("histogram", "/histogram", "histogram", "histogram"),
-    Statistic(_QUANTILE, "/" + _QUANTILE, "quantiles", "float"),
+    Statistic(_QUANTILE, "/" + _QUANTILE, "quantiles", "float", overflow="period"),
     Statistic("nonfinite", "/nonfinite", "always", "sparse"),
     Statistic("running", "/running", "running", "float"),
     Statistic("total", "", "counter", "exact", "count"),
@@ -109,24 +112,3 @@ def get(name: str) -> Statistic:
     if found is None:
         raise KeyError(f"{name!r} is not a jaxmetrics statistic.")
     return found
-
-
-def reported(stats: "StatSpec") -> list[str]:
-    """The statistics a metric with these report statistics has in `Metrics.compute`,
-    in report order."""
-    wants = {
-        "simple": lambda s: s.name in stats.simple,
-        "ema": lambda s: stats.ema is not None,
-        "window": lambda s: stats.window is not None,
-        "histogram": lambda s: stats.histogram is not None,
-        "always": lambda s: True,
-    }
-    out = []
-    for s in STATISTICS:
-        if s.source == "percentile" and stats.window is not None:
-            out += [percentile(p) for p in stats.window.percentiles]
-        elif s.source == "quantiles" and stats.quantiles is not None:
-            out += [quantile(p) for p in stats.quantiles.levels]
-        elif s.source in wants and wants[s.source](s):
-            out.append(s.name)
-    return out

@@ -55,7 +55,7 @@ class Packer:
             else:
                 layout.append(_Slot(tag, False, f_off, tuple(v.shape)))
                 f_off += math.prod(v.shape)
-        self._layout = tuple(layout)
+        self._slots = tuple(layout)
         self.num_floats, self.num_counts = f_off, c_off
 
     def pack(self, report: Mapping[str, Any]) -> tuple[jax.Array, jax.Array]:
@@ -64,10 +64,10 @@ class Packer:
         Raises:
           ValueError: the report's tags or shapes differ from the layout.
         """
-        if sorted(report) != sorted(s.tag for s in self._layout):
+        if sorted(report) != sorted(s.tag for s in self._slots):
             raise ValueError(self._DIFFERS)
         floats, his, los = [], [], []
-        for s in self._layout:
+        for s in self._slots:
             v = report[s.tag]
             a = v.hi if isinstance(v, Count) else jnp.asarray(v)
             if isinstance(v, Count) != s.is_count or tuple(a.shape) != s.shape:
@@ -94,7 +94,7 @@ class Packer:
         """Host: per run, every scalar count (the counters' totals among them) from packed
         counts of shape `[runs, 2, K]` (or `[2, K]` for one run)."""
         c = np.reshape(np.asarray(counts), (runs, 2, -1))
-        tags = [s.tag for s in self._layout if s.is_count and s.shape == ()]
+        tags = [s.tag for s in self._slots if s.is_count and s.shape == ()]
         return [self.unpack(None, c[r], tags) for r in range(runs)]
 
     def any_nonzero(self, counts: np.ndarray, tags: Iterable[str]) -> bool:
@@ -102,7 +102,7 @@ class Packer:
         wanted = set(tags)
         cols = [
             i
-            for s in self._layout
+            for s in self._slots
             if s.is_count and s.tag in wanted
             for i in range(s.offset, s.offset + math.prod(s.shape))
         ]
@@ -115,7 +115,7 @@ class Packer:
         become floats, counts exact Python ints (int64 arrays when not scalar)."""
         wanted = None if tags is None else set(tags)
         out: dict[str, Any] = {}
-        for s in self._layout:
+        for s in self._slots:
             if wanted is not None and s.tag not in wanted:
                 continue
             n = math.prod(s.shape)

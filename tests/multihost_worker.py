@@ -78,7 +78,7 @@ def main(pid: int, port: int, out: str) -> None:
                 "report": {k: plain(v) for k, v in report.items()},
                 "flush_bytes": flush_bytes,
                 "writes": logger.writes,
-                "shards": int(state.ended.hi.shape[0]),
+                "shards": int(state.shard_counts.hi.shape[0]),
             },
             f,
         )

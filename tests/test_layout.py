@@ -23,7 +23,7 @@ PACKAGE = Path(jm.__file__).resolve().parent
 CORE = {
     "_count",
     "_episode",
-    "_layout",
+    "_sharding",
     "_metrics",
     "_numerics",
     "_reductions",

@@ -295,7 +295,7 @@ def test_devices_split_the_envs_and_the_rollout_loop_stays_shard_local(tmp_path)
     assert _hlo.collectives(rollout) == {}, rollout
     assert "all-reduce" in _hlo.collectives(sgd), sgd
     ms = jmb.metrics_state(state.env_state)
-    assert ms.ended.hi.shape[0] == 2  # per shard: env steps, episodes
+    assert ms.shard_counts.hi.shape[0] == 2  # per shard: env steps, episodes
 
 
 @pytest.mark.parametrize(

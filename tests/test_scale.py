@@ -165,7 +165,7 @@ def test_step_loop_has_no_cross_device_collectives(layout, axis_type):
         assert ops, "no loop found in the compiled rollout"
         assert collectives(ops) == {}, f"{layout}: the step loop holds {collectives(ops)}"
         state = sharded(*args)
-    shards = state.ended.hi.shape[0]
+    shards = state.shard_counts.hi.shape[0]
     assert shards == (8 if layout in ("8", "2x4") else 4)
     assert state.finished.count.hi.sharding.spec[0] == env
 
@@ -218,7 +218,7 @@ def test_merge_of_lockstep_workers_equals_one_run_over_both_env_sets():
     a = run(*place(mesh, env, xs[..., :8], dones[:, :8]))
     b = run(*place(mesh, env, xs[..., 8:], dones[:, 8:]))
     merged = METRICS.merge(a, b)
-    assert merged.ended.hi.shape[0] == 8  # per shard: env steps, episodes
+    assert merged.shard_counts.hi.shape[0] == 8  # per shard: env steps, episodes
     whole = scan_of_updates(METRICS, None, 16)(xs, dones)
     got = METRICS.to_host(METRICS.compute(merged))
     want = METRICS.to_host(METRICS.compute(whole))
@@ -243,7 +243,7 @@ def test_bad_layouts_are_refused_with_the_fix():
     b = METRICS.init(4, sharding=NamedSharding(mesh, P(env)))
     # 2 envs in one shard and 1 env per shard do not form one env axis: one shard.
     m = METRICS.merge(METRICS.init(2, sharding=NamedSharding(mesh, P())), b)
-    assert m.ended.hi.shape[0] == 1 and m.running.steps.shape == (4, 6)
+    assert m.shard_counts.hi.shape[0] == 1 and m.running.steps.shape == (4, 6)
     m = METRICS.update(m, jnp.ones((4, 6)), jnp.ones(6, bool))
     assert METRICS.to_host(METRICS.compute(m))["Counters/episodes"] == 6
     with pytest.raises(

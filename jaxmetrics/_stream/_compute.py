@@ -86,3 +86,20 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
             for j, p in enumerate(ls):
                 out[i][_statistics.quantile(p)] = vals[j]
     return out
+
+
+def count_overflow(row: dict[str, jax.Array | Count]) -> dict[str, jax.Array | Count]:
+    """`row` (one row of `compute`) with the statistics that overflowed the dtype added to
+    its `nonfinite` count (which statistics can, and how, is the registry's `overflow`).
+    Such a statistic is not written, so the count is what makes the loss visible (warned
+    about or raised at flush)."""
+    has = ~_count.is_zero(row["count"])
+    bad = []
+    for name, v in row.items():
+        kind = _statistics.get(name).overflow
+        if kind == "period":
+            bad.append(has & ~jnp.isfinite(v))
+        elif kind == "inf":
+            bad.append(jnp.isinf(v))
+    n = jnp.sum(jnp.stack(bad), dtype=jnp.uint32)
+    return {**row, "nonfinite": _count.merge(row["nonfinite"], Count(jnp.uint32(0), n))}

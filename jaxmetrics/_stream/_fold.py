@@ -7,7 +7,7 @@ import numpy as np
 
 from .. import _count, _sketch
 from .._count import Count
-from .._layout import gathered
+from .._sharding import gathered
 from .._numerics import kahan_add
 from . import _kernel
 from ._state import (

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 
 from .. import _count
-from .._layout import gathered
+from .._sharding import gathered
 from .._numerics import kahan_add
 from ._fold import ema_weights, period_mean
 from ._state import (

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State, Wrapper
 from brax.envs.wrappers import training as brax_training
 
-from .._layout import placed
+from .._sharding import placed
 from .._metrics import Metrics
 from .._reporting import Reporter
 from .._state import MetricsState

@@ -82,7 +82,7 @@ def like(x: jax.Array, ref: jax.Array, what: str) -> jax.Array:
     )
 
 
-def env_layout(sharding: Any, num_envs: int) -> int:
+def shard_count(sharding: Any, num_envs: int) -> int:
     """The number of env shards for `Metrics.init(sharding=...)`, checked."""
     if sharding is None or isinstance(sharding, jax.sharding.SingleDeviceSharding):
         return 1
