@@ -29,10 +29,10 @@ from . import _history, _tags
 from ._count import Count, to_int
 from ._emit import InGraphEmit
 from ._history import History
-from ._sharding import mesh_of, placed, replicated
 from ._metrics import Metrics
 from ._report import Record, RecordBuilder, Writer, check_writers, derived_tags
 from ._seeds import SeedsSummary, summary_tags
+from ._sharding import mesh_of, placed, replicated
 from ._spec import check_name
 from ._state import MetricsState
 from ._tags import TagInfo

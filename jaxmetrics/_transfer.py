@@ -50,12 +50,12 @@ class Packer:
         for tag in order:
             v = report[tag]
             if isinstance(v, Count):
-                layout.append(_Slot(tag, True, c_off, tuple(v.hi.shape)))
+                slots.append(_Slot(tag, True, c_off, tuple(v.hi.shape)))
                 c_off += math.prod(v.hi.shape)
             else:
-                layout.append(_Slot(tag, False, f_off, tuple(v.shape)))
+                slots.append(_Slot(tag, False, f_off, tuple(v.shape)))
                 f_off += math.prod(v.shape)
-        self._slots = tuple(layout)
+        self._slots = tuple(slots)
         self.num_floats, self.num_counts = f_off, c_off
 
     def pack(self, report: Mapping[str, Any]) -> tuple[jax.Array, jax.Array]:

@@ -7,8 +7,8 @@ import numpy as np
 
 from .. import _count, _sketch
 from .._count import Count
-from .._sharding import gathered
 from .._numerics import kahan_add
+from .._sharding import gathered
 from . import _kernel
 from ._state import (
     INT32_MAX,

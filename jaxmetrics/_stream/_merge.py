@@ -4,8 +4,8 @@ import jax
 import jax.numpy as jnp
 
 from .. import _count
-from .._sharding import gathered
 from .._numerics import kahan_add
+from .._sharding import gathered
 from ._fold import ema_weights, period_mean
 from ._state import (
     INT32_MAX,

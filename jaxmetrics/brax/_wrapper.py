@@ -24,9 +24,9 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State, Wrapper
 from brax.envs.wrappers import training as brax_training
 
-from .._sharding import placed
 from .._metrics import Metrics
 from .._reporting import Reporter
+from .._sharding import placed
 from .._state import MetricsState
 from .._validate import is_int
 from ._upstream import default_promotion
