@@ -46,7 +46,7 @@ class Packer:
         if sorted(order) != sorted(report):
             raise ValueError("Packer: `order` must list every tag of the report once.")
         self.dtype = jnp.dtype(dtype)
-        layout, f_off, c_off = [], 0, 0
+        slots, f_off, c_off = [], 0, 0
         for tag in order:
             v = report[tag]
             if isinstance(v, Count):
