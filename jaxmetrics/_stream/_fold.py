@@ -1,5 +1,13 @@
 """Folding a batch into the stream: the period statistics, the EMA, the rings and the
-histograms, with XLA's kernels or, on a CUDA GPU, one kernel of our own (`_kernel`)."""
+histograms, with XLA's kernels or, on a CUDA GPU, one kernel of our own (`_kernel`).
+
+Steering XLA's fusion: a per-row field that does not depend on the batch's counts `k`
+(the non-finite count, the arrival step, the counted sums, the zeroed histogram step
+counts) is written as `jnp.where(k < 0, 0, x)` (or through another operand that never
+satisfies its test). The test never holds; it makes the field a function of `k`, so that
+XLA updates it in the one multi-output kernel that updates the other per-row fields
+(sibling fusions must share an operand) instead of in a kernel of its own.
+"""
 
 import jax
 import jax.numpy as jnp
@@ -131,8 +139,7 @@ def add_with_counts(
     )
     new = s._replace(
         count=_count.add(s.count, k),
-        # `k < 0` never holds: reading `k` here lets XLA update this count in the same
-        # kernel as the other [R] fields (sibling fusions must share an operand).
+        # Read through `k`, like `steps` and the counted sums (see the module docstring).
         nonfinite=_count.add(s.nonfinite, jnp.where(k < 0, 0, bad)),
         mean=mean,
         m2=m2,
@@ -146,14 +153,12 @@ def add_with_counts(
         ema_w=ema_w,
         ema_n=ema_n,
         ema_rings=ema_rings,
-        # Reads `k` for the same reason as `nonfinite` above.
         steps=s.steps + jnp.where(k < 0, 0, 1).astype(jnp.uint32),
         windows=tuple(windows),
         hists=hists,
         hist_steps=hist_steps,
         sketches=sketches,
     )
-    # Read through `k` like `nonfinite` above, to join the same kernel.
     packs = width // len(plan.rows) if plan.rows else 0
     return new, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, counted_sums))
 
@@ -161,7 +166,7 @@ def add_with_counts(
 def _ranked(plan: StreamPlan) -> tuple[int, ...]:
     """The rows `add` ranks by arrival. With an EMA every row is: the EMA operand is
     then an elementwise function of the batch (zero weight outside EMA rows), where a
-    stack of the EMA rows and zero rows made XLA write it out (H100: 1.4 us per step)."""
+    stack of the EMA rows and zero rows made XLA write it out to memory."""
     return tuple(range(len(plan.rows))) if plan.ema_rows else plan.ranked_rows
 
 
@@ -173,8 +178,7 @@ def arrivals_after(mask: jax.Array) -> tuple[jax.Array, jax.Array]:
     reduction); an entry's later neighbours in its block are the popcount of the word's
     higher bits, and the later blocks' entries a reverse cumsum over the blocks. One
     cumsum over the whole row is lowered to nested reduce-windows that XLA fuses into
-    one kernel recomputing the inner level per output (H100, full spec of the isolated
-    bench: 6.2 us of 28 per step).
+    one kernel recomputing the inner level per output, the slowest kernel of the step.
     """
     rows, n = mask.shape
     if n == 0:
@@ -291,7 +295,7 @@ def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None
         return (*out, *(ta + tb for ta, tb in zip(x[e:], y[e:])))
 
     # Deviations from `shift` (the running mean) go in, not the values: taking the shift
-    # off the batch's mean afterwards saves ~1 us/step on an H100 but rounds Chan's
+    # off the batch's mean afterwards saves one operand's pass but rounds Chan's
     # delta to the ulp of the mean, a variance bias of ~(ulp/sigma)^2 for data far from
     # zero (1e-4 relative at mean 1e6, std 1).
     out = jax.lax.reduce(operands, inits, combine, (1,))
@@ -492,9 +496,9 @@ def _hist_add(g: HistGroup, h: Count, zero: jax.Array, values, mask, dt):
     inner = jnp.clip(jnp.nan_to_num(t), 0, g.bins - 1).astype(jnp.int32) + 1
     slot = jnp.where(values < lo, 0, jnp.where(values > hi, g.bins + 1, inner))
     slot = jnp.where(mask & ~jnp.isnan(values), slot, g.bins + 2)  # matches no bin
-    # A scatter-add into `zero` in place: on CPU ~3x cheaper than compare-and-count, on an
-    # H100 1.0 us less per step (XLA does not fuse the compare into the reduction). TPUs
-    # scatter slowly: there, compare and count.
+    # A scatter-add into `zero` in place: cheaper than compare-and-count on CPU and CUDA
+    # (XLA does not fuse the compare into the reduction). TPUs scatter slowly: there,
+    # compare and count.
     inc = jax.lax.platform_dependent(
         slot,
         zero,
@@ -502,7 +506,7 @@ def _hist_add(g: HistGroup, h: Count, zero: jax.Array, values, mask, dt):
         cuda=slot_counts_scatter,
         default=slot_counts_compare,
     )
-    # `inc < 0` never holds: zeros read through `inc` join the count's kernel.
+    # The zeros read through `inc` (see the module docstring).
     return _count.add(h, inc), jnp.where(inc < 0, inc, 0)
 
 

@@ -9,8 +9,8 @@ batch's reduction, the mask packed into words, the later words' counts, the weig
 deviations, the ring scatter). One Triton program per row does it all: the row is loaded
 once, a cumulative sum of its mask gives the ranks, the reductions and the weighted sum
 follow, and the ring slots are written in place (the rings are aliased to the outputs;
-other rows never touch a row's slots). On an H100 (full spec of the isolated bench, 4096
-envs) that is 6 kernels per step where XLA's path has 10: 15.7 against 18.2 us in one run.
+other rows never touch a row's slots). With the full spec a step then takes 6 kernels
+where XLA's path takes 10 (docs/benchmarks.md has the times).
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
@@ -99,8 +99,7 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int):
         decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(jnp.float32) * jnp.log2(1 - c)))
         # The offset and seeding are worked out here from the state's own fields:
         # computed outside, XLA put them in the per-row update's kernel, which then had
-        # to run before this one and copied seven fields to keep their old values (H100:
-        # +6.5 us per step).
+        # to run before this one and copied seven fields to keep their old values.
         seeded = w_ref[...] > 0
         off = jnp.where(seeded, eoff_ref[...], shift_ref[...])
         first = ~seeded & (c > 0) & (after == total - 1)

@@ -24,7 +24,7 @@ class Ring(NamedTuple):
 
     A slot holds its value's bits and its stamp side by side (`ring_words` words of the
     stream's dtype, then the stamp), so that a step writes both in one scatter: stamps
-    of their own cost a second pass over the rings (H100: 0.7 us per step).
+    of their own would cost a second pass over the rings.
     """
 
     data: jax.Array  # [rows, size, ring_words(dtype) + 1] uint32: value bits, then stamp
