@@ -7,53 +7,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checkpoint, _count, _episode, _rows, _stream, _tags
+from . import _checkpoint, _count, _episode, _inputs, _rows, _stream, _tags
 from ._count import Count
 from ._sharding import like, shard_count, state_mesh
 from ._spec import Groups, Logged, MetricSpec, Term, reported
 from ._state import MetricsState
 from ._tags import TagInfo
-
-
-def _is_numeric(dtype) -> bool:
-    return jnp.issubdtype(dtype, jnp.bool_) or (
-        jnp.issubdtype(dtype, jnp.number) and not jnp.issubdtype(dtype, jnp.complexfloating)
-    )
-
-
-def _as_array(v: Any, what: str) -> jax.Array:
-    """A term's or logged value as a JAX array of a numeric dtype, or an error naming it
-    (`what`, e.g. "term 'x'").
-
-    Host integers wider than JAX's default int32 (numpy int64, Python ints past 2^31)
-    become float64 on the host first: JAX would wrap them (3_000_000_000 ->
-    -1294967296).
-    """
-    fix = "give float, int or bool values"
-    if v is None:
-        raise TypeError(f"{what}: got None; {fix}.")
-    if not isinstance(v, jax.Array | jax.core.Tracer):
-        try:
-            host = np.asarray(v)
-        except (TypeError, ValueError) as e:
-            raise TypeError(
-                f"{what}: got a {type(v).__name__}, not an array ({e}); {fix}."
-            ) from None
-        if host.dtype.kind in "USVMm":
-            raise TypeError(f"{what}: got {v!r} (numpy dtype {host.dtype}); {fix}.")
-        if host.dtype.kind in "iuO" and not jax.config.jax_enable_x64:
-            try:
-                host = host.astype(np.float64)
-            except (TypeError, ValueError):
-                raise TypeError(f"{what}: got {type(v).__name__} of non-numbers; {fix}.") from None
-        v = host
-    try:
-        a = jnp.asarray(v)
-    except TypeError as e:
-        raise TypeError(f"{what}: not a numeric array ({e}); {fix}.") from None
-    if not _is_numeric(a.dtype):
-        raise TypeError(f"{what}: got dtype {a.dtype}; {fix}.")
-    return a
 
 
 class Metrics:
@@ -302,56 +261,6 @@ class Metrics:
             )
         return state
 
-    def _evaluate(self, step_input: Any, num_envs: int) -> jax.Array:
-        values: dict[str, jax.Array] = {}
-        for name, term in zip(self._term_names(), self._rows.terms):
-            out = term.fn(step_input, **term.params)
-            if term.outputs is None:
-                if isinstance(out, Mapping):
-                    raise TypeError(
-                        f"term {name!r} returned a dict with keys {sorted(out)} but declares "
-                        f"no outputs; declare them: Term(fn, outputs={sorted(out)!r})."
-                    )
-                values[name] = self._check_value(out, name, num_envs)
-                continue
-            if not isinstance(out, Mapping):
-                raise TypeError(
-                    f"term {name!r} declares outputs {list(term.outputs)} but returned "
-                    f"{type(out).__name__}; return a dict with exactly those keys."
-                )
-            if set(out) != set(term.outputs):
-                raise ValueError(
-                    f"term {name!r} returned keys {sorted(out)}; its outputs are "
-                    f"{sorted(term.outputs)}. Return exactly the declared outputs."
-                )
-            for o in term.outputs:
-                values[f"{name}/{o}"] = self._check_value(out[o], f"{name}/{o}", num_envs)
-        return jnp.stack([values[s.name] for s in self._rows.ep_rows])
-
-    def _term_names(self) -> list[str]:
-        seen: list[str] = []
-        for s in self._rows.ep_defined:
-            if s.term not in seen:
-                seen.append(s.term)
-        return seen
-
-    def _check_value(self, v: Any, name: str, num_envs: int) -> jax.Array:
-        a = _as_array(v, f"term {name!r}")
-        if a.shape != (num_envs,):
-            if a.ndim == 0:
-                fix = "it returned a scalar; broadcast it with jnp.full((num_envs,), value)"
-            elif a.ndim == 2 and a.shape[0] == num_envs and a.shape[1] == 1:
-                fix = "drop the trailing axis with .squeeze(-1)"
-            elif a.ndim >= 2 and a.shape[0] == num_envs:
-                fix = "reduce the extra axes, e.g. .sum(-1) or jnp.linalg.norm(x, axis=-1)"
-            else:
-                fix = "return one value per env"
-            raise ValueError(
-                f"term {name!r} returned shape {a.shape}; expected (num_envs,)=({num_envs},): "
-                f"{fix}."
-            )
-        return a.astype(self.dtype)
-
     def update(self, state: MetricsState, step_input: Any, done: Any) -> MetricsState:
         """Folds one env step into the running episodes; finished episodes are reported.
 
@@ -378,7 +287,7 @@ class Metrics:
     def _update(self, state: MetricsState, step_input: Any, done: Any) -> MetricsState:
         assert state.running is not None
         num_envs = state.running.steps.shape[-1]
-        done = _as_array(done, "update: done")
+        done = _inputs.as_array(done, "update: done")
         if done.shape != (num_envs,):
             raise ValueError(
                 f"update: done must be a bool array of shape (num_envs,)=({num_envs},), got "
@@ -403,7 +312,11 @@ class Metrics:
                 "envs). Update a state made by init(num_envs, sharding=...)."
             )
         done = done.astype(jnp.bool_) if done.dtype != jnp.bool_ else done
-        x = like(self._evaluate(step_input, num_envs), state.running.steps, "the term values")
+        x = like(
+            _inputs.term_values(self._rows, step_input, num_envs),
+            state.running.steps,
+            "the term values",
+        )
         done = like(done, state.running.steps[0], "done")
         prop = jnp.asarray(self._rows.ep_propagate)[:, None]
         finite = jnp.isfinite(x)
@@ -415,9 +328,9 @@ class Metrics:
         bad = (~finite).astype(jnp.int32) + (ended & ~ok).astype(jnp.int32)
         group_ids = [
             like(i, state.running.steps[0], f"the group indices of {where}")
-            for i, where in self._group_ids(step_input, num_envs)
+            for i, where in _inputs.group_ids(self._rows, step_input, num_envs)
         ]
-        values, ok, bad = self._by_group(values, ok, bad, group_ids)
+        values, ok, bad = _inputs.by_group(self._rows, values, ok, bad, group_ids)
         # Materialized once (after the group split): without the barrier XLA recomputes
         # the episode values from the old accumulators inside each reduction, which makes
         # it copy them every step.
@@ -462,49 +375,6 @@ class Metrics:
             finished, counts = jax.vmap(fold)(*args)
         return state._replace(running=running, finished=finished, shard_counts=counts)
 
-    def _group_ids(self, step_input: Any, num_envs: int) -> list[tuple[jax.Array, str]]:
-        """Each grouping's group index per env (`[num_envs]` int32), checked, with where
-        it comes from (for messages)."""
-        out = []
-        for g, term in zip(self._rows.groupings, self._rows.grouping_terms):
-            where = f"the groups {list(g.names)} of term {term!r}"
-            v = g.fn(step_input, **g.params)
-            host = None if isinstance(v, jax.Array | jax.core.Tracer) else np.asarray(v)
-            if host is not None and host.dtype.kind in "iub":
-                # Wide host ints: clipped to just out of range, so they stay out of it.
-                a = jnp.asarray(np.clip(host, -1, len(g.names)).astype(np.int32))
-            else:
-                a = _as_array(v, where)
-            if not (jnp.issubdtype(a.dtype, jnp.integer) or a.dtype == jnp.bool_):
-                raise TypeError(
-                    f"{where}: the group function returned dtype {a.dtype}; return each env's "
-                    f"group index as an int array (0 for {g.names[0]!r}, ...)."
-                )
-            if a.shape != (num_envs,):
-                raise ValueError(
-                    f"{where}: the group function returned shape {a.shape}; expected one "
-                    f"index per env, (num_envs,)=({num_envs},)."
-                )
-            if a.dtype != jnp.bool_ and jnp.iinfo(a.dtype).bits > 32:
-                a = jnp.clip(a, -1, len(g.names))
-            out.append((a.astype(jnp.int32), where))
-        return out
-
-    def _by_group(
-        self, values: jax.Array, ok: jax.Array, bad: jax.Array, group_ids: list[jax.Array]
-    ) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """Episode rows `[M, E]` as report rows: each metric over all envs, then (for a
-        grouped metric) once per group, masked to the envs in that group. One compare
-        per grouping; no work per group beyond the elementwise mask."""
-        if not self._rows.groupings:
-            return values, ok, bad
-        src, kind, group = self._rows.report_rows
-        # Row K of `ids` is 0 for every env: the overall rows match it as group 0.
-        ids = jnp.concatenate([jnp.stack(group_ids), jnp.zeros_like(group_ids[0])[None]])
-        match = jnp.take(ids, kind, axis=0) == jnp.asarray(group)[:, None]
-        take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
-        return take(values), take(ok) & match, take(bad) * match.astype(jnp.int32)
-
     def log(self, state: MetricsState, values: Mapping[str, Any]) -> MetricsState:
         """Adds logged values: each scalar, or each element of an array, weighs 1.
 
@@ -528,7 +398,7 @@ class Metrics:
             )
         flat = {}
         for name, v in values.items():
-            a = _as_array(v, f"log: {name!r}")
+            a = _inputs.as_array(v, f"log: {name!r}")
             if a.size:  # an empty array logs nothing
                 flat[name] = a.reshape(-1).astype(self.dtype)
         if not flat:

@@ -21,12 +21,15 @@ from jaxmetrics import _episode, _reductions, _statistics, _stream, _tags
 PACKAGE = Path(jm.__file__).resolve().parent
 
 CORE = {
+    "_checkpoint",
     "_count",
     "_episode",
-    "_sharding",
+    "_inputs",
     "_metrics",
     "_numerics",
     "_reductions",
+    "_rows",
+    "_sharding",
     "_sketch",
     "_spec",
     "_state",

@@ -1,0 +1,151 @@
+"""What a step hands a `Metrics` spec, checked: its term values, its group indices, and
+the episode rows as report rows (each metric, then one row per group)."""
+
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._rows import SpecRows
+
+
+def _is_numeric(dtype) -> bool:
+    return jnp.issubdtype(dtype, jnp.bool_) or (
+        jnp.issubdtype(dtype, jnp.number) and not jnp.issubdtype(dtype, jnp.complexfloating)
+    )
+
+
+def as_array(v: Any, what: str) -> jax.Array:
+    """A term's or logged value as a JAX array of a numeric dtype, or an error naming it
+    (`what`, e.g. "term 'x'").
+
+    Host integers wider than JAX's default int32 (numpy int64, Python ints past 2^31)
+    become float64 on the host first: JAX would wrap them (3_000_000_000 ->
+    -1294967296).
+    """
+    fix = "give float, int or bool values"
+    if v is None:
+        raise TypeError(f"{what}: got None; {fix}.")
+    if not isinstance(v, jax.Array | jax.core.Tracer):
+        try:
+            host = np.asarray(v)
+        except (TypeError, ValueError) as e:
+            raise TypeError(
+                f"{what}: got a {type(v).__name__}, not an array ({e}); {fix}."
+            ) from None
+        if host.dtype.kind in "USVMm":
+            raise TypeError(f"{what}: got {v!r} (numpy dtype {host.dtype}); {fix}.")
+        if host.dtype.kind in "iuO" and not jax.config.jax_enable_x64:
+            try:
+                host = host.astype(np.float64)
+            except (TypeError, ValueError):
+                raise TypeError(f"{what}: got {type(v).__name__} of non-numbers; {fix}.") from None
+        v = host
+    try:
+        a = jnp.asarray(v)
+    except TypeError as e:
+        raise TypeError(f"{what}: not a numeric array ({e}); {fix}.") from None
+    if not _is_numeric(a.dtype):
+        raise TypeError(f"{what}: got dtype {a.dtype}; {fix}.")
+    return a
+
+
+def term_values(rows: SpecRows, step_input: Any, num_envs: int) -> jax.Array:
+    """Every episode row's value of this step, `[M, num_envs]` in the spec's dtype, or an
+    error naming the term and the fix."""
+    values: dict[str, jax.Array] = {}
+    for name, term in zip(_term_names(rows), rows.terms):
+        out = term.fn(step_input, **term.params)
+        if term.outputs is None:
+            if isinstance(out, Mapping):
+                raise TypeError(
+                    f"term {name!r} returned a dict with keys {sorted(out)} but declares "
+                    f"no outputs; declare them: Term(fn, outputs={sorted(out)!r})."
+                )
+            values[name] = _check_value(rows.dtype, out, name, num_envs)
+            continue
+        if not isinstance(out, Mapping):
+            raise TypeError(
+                f"term {name!r} declares outputs {list(term.outputs)} but returned "
+                f"{type(out).__name__}; return a dict with exactly those keys."
+            )
+        if set(out) != set(term.outputs):
+            raise ValueError(
+                f"term {name!r} returned keys {sorted(out)}; its outputs are "
+                f"{sorted(term.outputs)}. Return exactly the declared outputs."
+            )
+        for o in term.outputs:
+            values[f"{name}/{o}"] = _check_value(rows.dtype, out[o], f"{name}/{o}", num_envs)
+    return jnp.stack([values[s.name] for s in rows.ep_rows])
+
+
+def _term_names(rows: SpecRows) -> list[str]:
+    seen: list[str] = []
+    for s in rows.ep_defined:
+        if s.term not in seen:
+            seen.append(s.term)
+    return seen
+
+
+def _check_value(dtype: Any, v: Any, name: str, num_envs: int) -> jax.Array:
+    a = as_array(v, f"term {name!r}")
+    if a.shape != (num_envs,):
+        if a.ndim == 0:
+            fix = "it returned a scalar; broadcast it with jnp.full((num_envs,), value)"
+        elif a.ndim == 2 and a.shape[0] == num_envs and a.shape[1] == 1:
+            fix = "drop the trailing axis with .squeeze(-1)"
+        elif a.ndim >= 2 and a.shape[0] == num_envs:
+            fix = "reduce the extra axes, e.g. .sum(-1) or jnp.linalg.norm(x, axis=-1)"
+        else:
+            fix = "return one value per env"
+        raise ValueError(
+            f"term {name!r} returned shape {a.shape}; expected (num_envs,)=({num_envs},): {fix}."
+        )
+    return a.astype(dtype)
+
+
+def group_ids(rows: SpecRows, step_input: Any, num_envs: int) -> list[tuple[jax.Array, str]]:
+    """Each grouping's group index per env (`[num_envs]` int32), checked, with where
+    it comes from (for messages)."""
+    out = []
+    for g, term in zip(rows.groupings, rows.grouping_terms):
+        where = f"the groups {list(g.names)} of term {term!r}"
+        v = g.fn(step_input, **g.params)
+        host = None if isinstance(v, jax.Array | jax.core.Tracer) else np.asarray(v)
+        if host is not None and host.dtype.kind in "iub":
+            # Wide host ints: clipped to just out of range, so they stay out of it.
+            a = jnp.asarray(np.clip(host, -1, len(g.names)).astype(np.int32))
+        else:
+            a = as_array(v, where)
+        if not (jnp.issubdtype(a.dtype, jnp.integer) or a.dtype == jnp.bool_):
+            raise TypeError(
+                f"{where}: the group function returned dtype {a.dtype}; return each env's "
+                f"group index as an int array (0 for {g.names[0]!r}, ...)."
+            )
+        if a.shape != (num_envs,):
+            raise ValueError(
+                f"{where}: the group function returned shape {a.shape}; expected one "
+                f"index per env, (num_envs,)=({num_envs},)."
+            )
+        if a.dtype != jnp.bool_ and jnp.iinfo(a.dtype).bits > 32:
+            a = jnp.clip(a, -1, len(g.names))
+        out.append((a.astype(jnp.int32), where))
+    return out
+
+
+def by_group(
+    rows: SpecRows, values: jax.Array, ok: jax.Array, bad: jax.Array, group_ids: list[jax.Array]
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Episode rows `[M, E]` as report rows: each metric over all envs, then (for a
+    grouped metric) once per group, masked to the envs in that group. One compare
+    per grouping; no work per group beyond the elementwise mask."""
+    if not rows.groupings:
+        return values, ok, bad
+    src, kind, group = rows.report_rows
+    # Row K of `ids` is 0 for every env: the overall rows match it as group 0.
+    ids = jnp.concatenate([jnp.stack(group_ids), jnp.zeros_like(group_ids[0])[None]])
+    match = jnp.take(ids, kind, axis=0) == jnp.asarray(group)[:, None]
+    take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
+    return take(values), take(ok) & match, take(bad) * match.astype(jnp.int32)
