@@ -15,6 +15,20 @@ from ._state import MetricsState
 from ._tags import TagInfo
 
 
+def _leading_shape(state: MetricsState) -> tuple[int, ...]:
+    """The axes `state` has in front of one state's (e.g. a stack of seeds' states)."""
+    one_state = (
+        (None if state.running is None else state.running.steps, 2),  # [rows, num_envs]
+        (None if state.shard_counts is None else state.shard_counts.hi, 2),  # [shards, K]
+        (None if state.logged is None else state.logged.steps, 1),  # [rows]
+        (None if state.counters is None else state.counters.hi, 1),  # [C]
+    )
+    for leaf, ndim in one_state:
+        if leaf is not None:
+            return tuple(leaf.shape[: leaf.ndim - ndim])
+    return ()
+
+
 class Metrics:
     """A static metrics spec and the pure functions over its `MetricsState`.
 
@@ -259,6 +273,14 @@ class Metrics:
                 "spec that updates it; to restore a checkpoint, build the spec exactly as "
                 "the one that saved it."
             )
+        lead = _leading_shape(state)
+        if lead:
+            raise ValueError(
+                f"{fn}: this state has leading axes {lead} (a stack of states, e.g. one per "
+                f"seed); its statistics would be merged as if they were one run's. Apply "
+                f"{fn} to each state: jax.vmap(metrics.{fn}) over the stacked axis, or "
+                "merge the states first if they are one run's workers."
+            )
         return state
 
     def update(self, state: MetricsState, step_input: Any, done: Any) -> MetricsState:
@@ -465,7 +487,7 @@ class Metrics:
         are exact; windows keep the newest `n` by arrival step (`b`'s values after `a`'s
         of the same step); the EMA folds both workers' values in that order, exact to
         2^-32 of the values' range for states made by a sharded `init` and the average
-        of the workers' EMAs otherwise (see the README). Running episodes are
+        of the workers' EMAs otherwise (docs/semantics.md, "Merge"). Running episodes are
         concatenated along the env axis; env shards are concatenated when both states
         have the same envs per shard, else each state's shards are merged into one first.
         Associative, with `empty()` as identity.

@@ -64,7 +64,7 @@ def like(x: jax.Array, ref: jax.Array, what: str) -> jax.Array:
 
     Under explicit sharding the layouts are known at trace time; an input split
     differently from the state would need a cross-device copy on every step, so it is an
-    error rather than a silent reshard (under Auto axes XLA decides; see the README).
+    error rather than a silent reshard (under Auto axes XLA decides; see docs/devices.md).
     """
     want = getattr(jax.typeof(ref).sharding, "spec", None)
     have = getattr(jax.typeof(x).sharding, "spec", None)

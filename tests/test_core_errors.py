@@ -2,6 +2,7 @@
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxmetrics as jm
@@ -286,3 +287,27 @@ def test_a_bare_string_of_stats_is_one_statistic():
         "Episode_Metrics/r/max",
         "Train/x",
     ]
+
+
+def test_a_stack_of_states_is_refused_where_one_state_is_expected():
+    # A state stacked over seeds (vmapped init) passed whole to compute would merge the
+    # seeds as if they were env shards of one run: a wrong number with no error.
+    m = jm.Metrics(terms={"r": jm.Term(lambda r: r)}, logged=["loss"], counters=["c"])
+    rewards = np.array([[1.0, 2.0, 3.0], [10.0, 20.0, 30.0]], np.float32)
+    done = jnp.array([True, False, True])
+
+    def run(r):
+        return m.update(m.init(3), jnp.asarray(r), done)
+
+    stacked = jax.vmap(run)(rewards)
+    for fn, args in (
+        ("compute", (stacked,)),
+        ("update", (stacked, jnp.ones(3), done)),
+        ("reset_period", (stacked,)),
+        ("merge", (stacked, stacked)),
+    ):
+        with pytest.raises(ValueError, match=rf"{fn}: this state has leading axes \(2,\)"):
+            getattr(m, fn)(*args)
+    per_seed = jax.vmap(m.compute)(stacked)
+    means = np.asarray(per_seed["Episode_Metrics/r"])
+    np.testing.assert_allclose(means, [(r[0] + r[2]) / 2 for r in rewards.astype(np.float64)])

@@ -16,7 +16,7 @@ import pytest
 
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb
-from jaxmetrics import _episode, _reductions, _statistics, _stream, _tags
+from jaxmetrics import _episode, _reductions, _spec, _statistics, _stream, _tags
 
 PACKAGE = Path(jm.__file__).resolve().parent
 
@@ -128,7 +128,7 @@ def test_the_stream_computes_exactly_the_statistics_the_registry_reports():
     spec = metrics.metric_specs["loss"]
     plan = _stream.StreamPlan.build([spec], jnp.float32)
     (row,) = _stream.compute(plan, _stream.init(plan))
-    assert sorted(row) == sorted(_statistics.reported(spec.stats))
+    assert sorted(row) == sorted(_spec.reported(spec.stats))
 
 
 def test_every_tag_is_its_metric_tag_plus_the_registry_suffix():

@@ -75,7 +75,7 @@ class ProgressFn:
 
     Brax 0.14.2's `ppo.train` itself calls `jax.device_put_replicated`, which JAX 0.10
     removed from its public namespace: on that pair of versions it fails before training,
-    whatever `progress_fn`, unless the name is restored first (the README's "Brax's own
+    whatever `progress_fn`, unless the name is restored first (docs/brax.md's "Brax's own
     trainer" shows the three lines).
 
     Args:
