@@ -129,11 +129,12 @@ def _ema64(values, c):
     return e
 
 
-def test_mixed_merges_of_sharded_and_unsharded_states_follow_the_readme_rule(env_sharded):
+def test_mixed_merges_of_sharded_and_unsharded_states_follow_the_documented_rule(env_sharded):
     # A sharded state keeps each EMA's newest values (its shards merge exactly); an
-    # unsharded one keeps none. Merged, the sharded side's EMA used to be taken alone
-    # (merge(a, b) read 1.0 here) or misweighted (merge(b, a): 3.667): the README allows
-    # the sequential EMA or the average of the workers' EMAs, and the average it is.
+    # unsharded one keeps none. Merged, the sharded side's EMA must not be taken alone
+    # (merge(a, b) would read 1.0 here) or misweighted (merge(b, a): 3.667): docs/semantics.md
+    # ("Merge") allows the sequential EMA or the average of the workers' EMAs, and the
+    # average it is.
     c = 0.5
     m = jm.Metrics(terms={"x": jm.Term(lambda x: x, stats=("count", jm.ema(c)))})
     done = jnp.ones(2, bool)

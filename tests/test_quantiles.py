@@ -135,7 +135,7 @@ def test_every_representative_is_within_the_accuracy_of_its_whole_bucket(accurac
 
 def test_memory_is_slots_times_8_bytes_and_the_slot_count_is_documented():
     g = _sketch.SketchGroup(0.01, (0,))
-    assert g.slots == 4156  # 2 x 2075 buckets + 6: the README says so
+    assert g.slots == 4156  # 2 x 2075 buckets + 6: docs/semantics.md says so
     state = jm.Metrics(logged={"v": jm.Logged(stats=(jm.quantiles(),))}).init(0)
     (counts,) = state.logged.sketches
     assert counts.hi.shape == (1, 4156) and counts.hi.dtype == jnp.uint32
