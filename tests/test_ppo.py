@@ -2,6 +2,7 @@
 here), the host loop and the fully-jitted mode write the same values, vmapped seeds each go
 to their own run, and its pieces (GAE, observation statistics) match numpy references."""
 
+import os
 import sys
 
 import jax
@@ -302,7 +303,11 @@ def test_devices_split_the_envs_and_the_rollout_loop_stays_shard_local(tmp_path)
     "argv0, prog",
     [
         ("/venv/bin/jaxmetrics-ppo", "jaxmetrics-ppo"),  # the installed script
-        (ppo.__file__, "python -m jaxmetrics.examples.ppo"),  # python -m
+        # python -m runs the package's __main__.py, and argv[0] is its path
+        (
+            os.path.join(os.path.dirname(ppo.__file__), "__main__.py"),
+            "python -m jaxmetrics.examples.ppo",
+        ),
     ],
 )
 def test_help_names_the_program_it_was_started_as(argv0, prog, monkeypatch, capsys):

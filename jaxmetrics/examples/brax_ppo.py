@@ -45,6 +45,7 @@ def metrics_spec() -> jm.Metrics:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Trains with Brax's PPO and the reporting wrapper; returns the exit status."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="inverted_pendulum", help="a Brax env name")
     p.add_argument("--timesteps", type=int, default=8192, help="env steps to train for")
