@@ -364,7 +364,7 @@ def test_arrival_ranks_count_the_later_entries_of_each_row(rows):
 @settings(max_examples=25, deadline=None)
 @given(st.integers(1, 4), st.integers(5, 8), st.sampled_from([1, 5, 16]), st.integers(0, 2**32 - 1))
 def test_fused_kernel_matches_a_python_loop(rows, log_batch, size, seed):
-    # The CUDA kernel (`_fused_ema`), run in Pallas' interpret mode since CI has no GPU,
+    # The CUDA kernel (`_stream._kernel`), run in Pallas' interpret mode since CI has no GPU,
     # against float64 numpy and a loop over each row in arrival order: the batch's
     # statistics and counted sums, the EMA's weighted sum and a ring written one arrival at a
     # time. Rows cover no EMA (c = 0), c = 1 (0^0 = 1), a seeding row, far-from-zero
