@@ -103,6 +103,28 @@ def test_modules_import_only_their_layer_or_below(path):
         assert "jax" not in others, f"{'/'.join(rel)} imports jax"
 
 
+def test_no_module_imports_itself_through_others():
+    # A circle (even one through a TYPE_CHECKING import) means two modules share one
+    # concept: each should own its part.
+    graph: dict[str, set[str]] = {}
+    for path in MODULES:
+        top = path.relative_to(PACKAGE).with_suffix("").parts[0]
+        graph.setdefault(top, set()).update(imports(path)[0] - {top})
+
+    def circle(node: str, trail: list[str]) -> list[str] | None:
+        if node in trail:
+            return trail[trail.index(node) :] + [node]
+        for dep in sorted(graph.get(node, ())):
+            found = circle(dep, [*trail, node])
+            if found:
+                return found
+        return None
+
+    for top in sorted(graph):
+        found = circle(top, [])
+        assert found is None, " -> ".join(found)
+
+
 def test_progress_fn_builds_records_without_the_jax_core():
     ours, _ = imports(PACKAGE / "brax" / "_progress.py")
     assert ours <= PURE, ours - PURE
