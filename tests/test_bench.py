@@ -288,6 +288,64 @@ def test_timed_rounds_rotate_so_no_variant_always_runs_first():
     assert {t.repeats for t in timings.values()} == {6} and last == {n: n for n in "abc"}
 
 
+DOC = os.path.join(os.path.dirname(__file__), os.pardir, "docs", "benchmarks.md")
+
+
+def _committed() -> tuple[str, dict]:
+    with open(DOC) as f:
+        return f.read(), _render.load(_render.results_dir(DOC))
+
+
+def test_committed_tables_are_what_the_committed_results_files_render_to():
+    text, docs = _committed()
+    # On failure: `python -m jaxmetrics.bench --render` rewrites the tables from the files.
+    assert _render.render(text, docs) == text
+
+
+def test_every_committed_results_file_renders_each_of_its_tables():
+    text, docs = _committed()
+    assert docs
+    for name, doc in docs.items():
+        block = text.split(f"<!-- bench: {name} -->\n")[1].split("<!-- /bench -->")[0]
+        assert block.startswith(f"`{name}`: "), name  # where and how it was measured
+        its = _render.tables(doc)
+        assert its, name
+        for t in its:
+            assert t.rows, (name, t.name)
+            assert f"#### {t.title}\n" in block, (name, t.name)
+
+
+def test_render_keeps_the_prose_and_refuses_what_it_cannot_place():
+    _, docs = _committed()
+    one = {"cpu_groups.json": docs["cpu_groups.json"]}
+    text = "Before.\n<!-- bench: cpu_groups.json -->\nstale\n<!-- /bench -->\nAfter.\n"
+    out = _render.render(text, one)
+    assert out.startswith("Before.\n<!-- bench: cpu_groups.json -->\n`cpu_groups.json`: cpu, ")
+    assert out.endswith("<!-- /bench -->\nAfter.\n") and "stale" not in out
+    assert _render.render(out, one) == out
+    with pytest.raises(ValueError, match=r"no block shows \['cpu_groups.json'\]"):
+        _render.render("Prose only.\n", one)
+    with pytest.raises(ValueError, match="'<!-- bench: gone.json -->' names no results file"):
+        _render.render("<!-- bench: gone.json -->\n<!-- /bench -->\n", one)
+
+
+def test_render_is_the_cli_s_render_step(tmp_path):
+    text, docs = _committed()
+    (tmp_path / "benchmarks").mkdir()
+    for name in ("cpu_groups.json", "h100_groups.json"):
+        with open(tmp_path / "benchmarks" / name, "w") as f:
+            json.dump(docs[name], f)
+    stale = "<!-- bench: targets -->\n<!-- /bench -->\n" + "".join(
+        f"<!-- bench: {n} -->\nSTALE\n<!-- /bench -->\n"
+        for n in ("cpu_groups.json", "h100_groups.json")
+    )
+    (tmp_path / "benchmarks.md").write_text(stale)
+    assert bench.main(["--render", str(tmp_path / "benchmarks.md")]) == []
+    out = (tmp_path / "benchmarks.md").read_text()
+    assert "STALE" not in out and "3.30x at 64 groups" in out  # the GPU file's target row
+    assert out == _render.render(stale, _render.load(str(tmp_path / "benchmarks")))
+
+
 def _ppo_run(call, variant, t_s, training_sps, reports=0):
     """A `_brax_train` run: 300 steps in three intervals, the first compiling."""
     from jaxmetrics.bench._brax_train import _steady
