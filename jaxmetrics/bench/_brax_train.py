@@ -1,7 +1,8 @@
 """What the reporting Brax wrapper costs inside Brax's own trainer (`ppo.train`).
 
 `python -m jaxmetrics.bench._brax_train --env ant --num-envs 4096 --timesteps 10000000
---variants brax,report_full,report_mean --runs 2 --commit $(git rev-parse HEAD) --out F.json`
+--variants brax,report_full,report_mean --runs 2 --call overhead --commit $(git rev-parse HEAD)
+--out F.json`
 
 Runs `brax.training.agents.ppo.train` on `brax.envs.get_environment(env, backend="mjx")`
 with Brax's tuned PPO settings for `ant` (Brax's README), the same seed for every variant:
@@ -22,6 +23,8 @@ with Brax's tuned PPO settings for `ant` (Brax's README), the same seed for ever
   one or two reports per 10M-step run instead of 28): the per-step reporting machinery
   (the int32 clock, the `lax.cond` on its predicate, the EMA history kept under `pmap`)
   without the per-report cost (`all_gather`, compute, `io_callback`, writers).
+- `report_full_often`: `report_full` with `report_every=OFTEN_REPORT_EVERY` (10x the
+  reports: 288 per 10M-step run), where the per-report cost stands above the noise.
 
 Per run: the steady-state env steps per second between consecutive `progress_fn` calls
 (each interval includes Brax's evaluation; every interval in which a backend compile
@@ -29,8 +32,10 @@ ended is left out: on this JAX the first two, as the training epoch compiles twi
 Brax's own `training/sps` (the training epoch alone, over the same epochs), the wall time
 of `ppo.train`, and for the reporting variants each record's arrival time relative to the
 start of training (it shows reports arriving while training runs). Results are written
-after every run, so a run cut short keeps the finished ones. `--merge A.json B.json --out
-C.json` joins the runs of several outputs.
+after every run, so a run cut short keeps the finished ones. Every run is tagged with
+`--call`, the device call it ran in, and compared only with the `brax` runs of the same
+call (`_brax_results`); `--merge A.json B.json --out C.json` joins the runs and calls of
+several outputs.
 
 `--time-callbacks` times the host side of every report of the reporting variants
 (`callback_times`, perf_counter): JAX's own host function around ours (`io_callback_impl`:
@@ -55,6 +60,7 @@ import json
 import os
 import platform
 import re
+import shlex
 import shutil
 import statistics
 import sys
@@ -70,16 +76,21 @@ import jax._src.api
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb  # before Brax (quiet imports)
 
+from ._brax_results import summarize, tables
 from ._hlo import _BODY, _CALLS, _CONTAINERS, _opcode, _ops, _split_computations
 from ._workload import pattern_stats
 
 VARIANTS = (
-    "brax", "report_full", "report_mean", "report_all",
-    "fold_full", "fold_mean", "report_full_rare", "report_full_mem",
+    "brax", "report_full", "report_mean", "report_all", "fold_full", "fold_mean",
+    "report_full_rare", "report_full_often", "report_full_mem",
 )  # fmt: skip
 
 RARE_REPORT_EVERY = 5_000_000
 """`report_every` of the `*_rare` variants: one or two reports in a 10M-step run."""
+
+OFTEN_REPORT_EVERY = 40_960
+"""`report_every` of the `*_often` variants: 288 reports in a 10M-step run (10x the
+default's 28)."""
 
 # Brax's tuned PPO settings for ant (brax README, "ant"); num_timesteps comes from the CLI.
 ANT_PPO = {
@@ -207,16 +218,18 @@ class CompileCounter:
             self.events.append((time.time() - self.t0, float(duration)))
 
 
-def parse_variant(variant: str) -> tuple[str, str | None, bool, str]:
-    """`(mode, features, rare, sink)` of a variant name: mode "brax", "fold" or "report";
+def parse_variant(variant: str) -> tuple[str, str | None, int | None, str]:
+    """`(mode, features, report_every, sink)` of a variant name: mode "brax", "fold" or
+    "report"; `report_every` that of `*_rare` or `*_often` (None: the command line's);
     sink "tensorboard", or "memory" for `*_mem` (a `MemoryWriter` instead)."""
     if variant == "brax":
-        return "brax", None, False, "tensorboard"
+        return "brax", None, None, "tensorboard"
     mode, features, *rest = variant.split("_")
-    rare, mem = rest == ["rare"], rest == ["mem"]
-    if mode not in ("fold", "report") or (rest and not (rare or mem)):
+    tag = "_".join(rest)
+    if mode not in ("fold", "report") or tag not in ("", "mem", "rare", "often"):
         raise ValueError(f"unknown variant {variant!r}")
-    return mode, features, rare, "memory" if mem else "tensorboard"
+    every = {"rare": RARE_REPORT_EVERY, "often": OFTEN_REPORT_EVERY}.get(tag)
+    return mode, features, every, "memory" if tag == "mem" else "tensorboard"
 
 
 def _ms_stats(xs: Sequence[float]) -> dict[str, Any]:
@@ -402,11 +415,11 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
             settings[key] = getattr(args, key)
     settings["num_timesteps"] = args.timesteps
     extra: dict[str, Any] = {"num_eval_envs": args.num_eval_envs}
-    result: dict[str, Any] = {"variant": variant, "run": run}
+    result: dict[str, Any] = {"variant": variant, "run": run, "call": args.call}
     logger = writer = logdir = None
     progress: list[dict[str, Any]] = []
-    mode, features, rare, sink = parse_variant(variant)
-    report_every = RARE_REPORT_EVERY if rare else args.report_every
+    mode, features, every, sink = parse_variant(variant)
+    report_every = every or args.report_every
 
     if mode != "brax":
         metrics, desc = build_spec(env, features)
@@ -736,66 +749,6 @@ def environment(commit: str | None) -> dict[str, Any]:
     }
 
 
-def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per variant: mean steady sps and Brax's sps over runs; overhead vs `brax` in %
-    (time per step: `brax_sps / variant_sps - 1`)."""
-    out: dict[str, Any] = {}
-    for v in dict.fromkeys(r["variant"] for r in runs):
-        rs = [r for r in runs if r["variant"] == v]
-        steady = [r["steady_sps"] for r in rs if r.get("steady_sps")]
-        brax = [r["brax_training_sps"] for r in rs if r.get("brax_training_sps")]
-        out[v] = {
-            "runs": len(rs),
-            "steady_sps_mean": statistics.mean(steady) if steady else None,
-            "brax_training_sps_mean": statistics.mean(brax) if brax else None,
-            "wall_s_mean": statistics.mean(r["wall_s"] for r in rs),
-        }
-    base = out.get("brax")
-    if base:
-        for s in out.values():
-            for key, name in (("steady_sps_mean", "overhead_steady_pct"),
-                              ("brax_training_sps_mean", "overhead_brax_sps_pct"),
-                              ("wall_s_mean", "overhead_wall_pct")):  # fmt: skip
-                b, x = base[key], s[key]
-                if b and x:
-                    s[name] = 100.0 * ((x / b) if key == "wall_s_mean" else (b / x)) - 100.0
-    return out
-
-
-def table(runs: list[dict[str, Any]], summary: dict[str, Any]) -> str:
-    def f(x: Any, fmt: str = ",.0f") -> str:
-        return "-" if x is None else format(x, fmt)
-
-    lines = [
-        "| variant | run | steady sps | sps excl. 1st interval | Brax training/sps | wall s "
-        "| compiles | records | first/last record s |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ]
-    for r in runs:
-        rec = "-"
-        if "records" in r:
-            rec = f"{f(r['first_record_s'], '.1f')} / {f(r['last_record_s'], '.1f')}"
-        lines.append(
-            f"| {r['variant']} | {r['run']} | {f(r['steady_sps'])} | "
-            f"{f(r['steady_sps_excl_first'])} | "
-            f"{f(r['brax_training_sps'])} | "
-            f"{r['wall_s']:.1f} | {r['compiles']} | {r.get('records', '-')} | {rec} |"
-        )
-    lines += [
-        "",
-        "| variant | runs | steady sps | overhead | Brax sps | overhead | wall s | overhead |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for v, s in summary.items():
-        lines.append(
-            f"| {v} | {s['runs']} | {f(s['steady_sps_mean'])} | "
-            f"{f(s.get('overhead_steady_pct'), '+.2f')}% | "
-            f"{f(s['brax_training_sps_mean'])} | {f(s.get('overhead_brax_sps_pct'), '+.2f')}% | "
-            f"{s['wall_s_mean']:.1f} | {f(s.get('overhead_wall_pct'), '+.2f')}% |"
-        )
-    return "\n".join(lines)
-
-
 def _write(path: str, doc: dict[str, Any]) -> None:
     tmp = path + ".tmp"
     with open(tmp, "w") as fh:
@@ -839,6 +792,12 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         "--first-run", type=int, default=1, help="number of the first run (when split over calls)"
     )
     p.add_argument("--commit", default=None, help="git commit of the tree (`git rev-parse HEAD`)")
+    p.add_argument(
+        "--call",
+        default="1",
+        help="name of this device call: runs are compared with the brax runs of the same call",
+    )
+    p.add_argument("--note", default=None, help="free text stored with the call")
     p.add_argument("--out", default=None)
     p.add_argument("--explain-cache-misses", action="store_true", help="log why JAX recompiles")
     p.add_argument(
@@ -849,20 +808,51 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument(
         "--callback-probe", action="store_true", help="what one io_callback costs (no Brax)"
     )
-    p.add_argument("--merge", nargs="+", default=None, help="join these outputs' runs into --out")
+    p.add_argument(
+        "--merge", nargs="+", default=None, help="join these outputs' runs and calls into --out"
+    )
     return p.parse_args(argv)
+
+
+def merge(docs: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """One results file of several outputs: their runs, and their calls joined by name
+    (commands and notes one after the other; a call's tree must be the same in each)."""
+    calls: dict[str, dict[str, Any]] = {}
+    for d in docs:
+        for name, meta in d["calls"].items():
+            seen = calls.setdefault(name, {**meta, "commands": [], "notes": []})
+            if seen["commit"] != meta["commit"]:
+                raise ValueError(
+                    f"call {name!r} measured tree {seen['commit']} in one output and "
+                    f"{meta['commit']} in another; give each tree its own --call"
+                )
+            seen.update({k: v for k, v in meta.items() if k not in ("commands", "notes")})
+            seen["commands"] += meta["commands"]
+            seen["notes"] += meta["notes"]
+    runs = [r for d in docs for r in d["runs"]]
+    return {
+        **docs[0],
+        "calls": calls,
+        "runs": runs,
+        "summary": summarize(runs),
+        "specs": {k: v for d in docs for k, v in d.get("specs", {}).items()},
+    }
+
+
+def _print_tables(doc: dict[str, Any]) -> None:
+    for t in tables(doc):
+        print(t.to_markdown(), flush=True)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = _parse(argv)
     if args.merge:
-        docs = [json.load(open(p)) for p in args.merge]
-        doc = dict(docs[0])
-        doc["runs"] = [r for d in docs for r in d["runs"]]
-        doc["merged_from"] = [{"file": os.path.basename(p), "environment": d["environment"],
-                               "args": d["args"]} for p, d in zip(args.merge, docs)]  # fmt: skip
-        doc["summary"] = summarize(doc["runs"])
-        print(table(doc["runs"], doc["summary"]))
+        docs = []
+        for path in args.merge:
+            with open(path) as fh:
+                docs.append(json.load(fh))
+        doc = merge(docs)
+        _print_tables(doc)
         if args.out:
             _write(args.out, doc)
         return
@@ -878,17 +868,27 @@ def main(argv: Sequence[str] | None = None) -> None:
     if args.explain_cache_misses:
         jax.config.update("jax_explain_cache_misses", True)
     counter = CompileCounter()
+    command = " ".join(
+        ["python", "-m", "jaxmetrics.bench._brax_train"]
+        + [shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)]
+    )
+    call: dict[str, Any] = {
+        "commit": args.commit,
+        "commands": [command],
+        "notes": [args.note] if args.note else [],
+    }
     doc: dict[str, Any] = {
         "benchmark": "brax_ppo_train",
         "description": __doc__,
         "environment": environment(args.commit),
         "args": vars(args),
+        "calls": {args.call: call},
         "runs": [],
     }
     print(json.dumps(doc["environment"]), flush=True)
     if args.callback_probe:
-        doc["callback_probe"] = callback_probe()
-        for r in doc["callback_probe"]["rows"]:
+        call["callback_probe"] = callback_probe()
+        for r in call["callback_probe"]["rows"]:
             print({k: v for k, v in r.items() if k != "all_s"}, flush=True)
         if args.out:
             _write(args.out, doc)
@@ -909,8 +909,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             )
             if args.out:
                 _write(args.out, doc)
-    if doc["runs"]:
-        print(table(doc["runs"], doc["summary"]))
+    _print_tables(doc)
 
 
 if __name__ == "__main__":

@@ -2,14 +2,16 @@
 
 import argparse
 import dataclasses
+import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import jax
 
-from . import _flush_cost, _isolated, _rollout, _sharded
-from ._report import Table, environment, write_json
+from . import _flush_cost, _isolated, _render, _rollout, _sharded
+from ._report import Table, device_label, environment, write_json
+from ._targets import targets
 
 SCENARIOS = ("isolated", "scaling", "groups", "flush", "e2e", "sharded")
 
@@ -100,6 +102,47 @@ QUICK = dataclasses.replace(
 )
 
 
+def _scenario_tables(name: str, c: Config, hlo_dir: str | None, profile: bool) -> Iterator[Table]:
+    """The tables of scenario `name`, each as soon as it is measured."""
+    if name == "isolated":
+        yield from _isolated.isolated(c.num_envs, c.steps, c.repeats, hlo_dir, profile)
+    elif name == "scaling":
+        yield from _isolated.scaling(
+            list(c.scale_envs),
+            list(c.scale_terms),
+            list(c.scale_windows),
+            c.num_envs,
+            c.scale_steps,
+            c.scale_repeats,
+        )
+    elif name == "groups":
+        yield _isolated.groups(list(c.group_counts), c.num_envs, c.scale_steps, c.scale_repeats)
+    elif name == "flush":
+        yield _flush_cost.flush(list(c.flush_envs), c.flush_repeats)
+        yield _flush_cost.period_ends(c.period_envs, c.period_ends, c.period_every, c.flush_repeats)
+    elif name == "e2e":
+        yield from _rollout.end_to_end(
+            c.env,
+            c.backend,
+            c.e2e_envs,
+            c.e2e_steps,
+            c.e2e_repeats,
+            c.host_steps,
+            c.host_repeats,
+            c.e2e_variants,
+        )
+    elif name == "sharded":
+        yield from _sharded.sharded(
+            c.env,
+            c.backend,
+            c.sharded_per_device,
+            c.sharded_steps,
+            c.sharded_repeats,
+            c.sharded_devices,
+            c.sharded_processes,
+        )
+
+
 def run(
     config: Config,
     hlo_dir: str | None = None,
@@ -108,139 +151,24 @@ def run(
 ) -> list[Table]:
     """Runs the configured scenarios and returns their tables, the targets table last.
 
-    `on_table(table, tables_so_far)` is called as each table is done (to print it, or
-    to save partial results).
+    Each table's `scenario` names the scenario that made it. `on_table(table,
+    tables_so_far)` is called as each table is done (to print it, or to save partial
+    results).
     """
     tables: list[Table] = []
 
-    def done(*new: Table) -> None:
-        for t in new:
-            tables.append(t)
-            if on_table is not None:
-                on_table(t, tables)
+    def done(t: Table) -> None:
+        tables.append(t)
+        if on_table is not None:
+            on_table(t, tables)
 
-    c = config
-    if "isolated" in c.scenarios:
-        done(*_isolated.isolated(c.num_envs, c.steps, c.repeats, hlo_dir, profile))
-    if "scaling" in c.scenarios:
-        done(
-            *_isolated.scaling(
-                list(c.scale_envs),
-                list(c.scale_terms),
-                list(c.scale_windows),
-                c.num_envs,
-                c.scale_steps,
-                c.scale_repeats,
-            )
-        )
-    if "groups" in c.scenarios:
-        done(_isolated.groups(list(c.group_counts), c.num_envs, c.scale_steps, c.scale_repeats))
-    if "flush" in c.scenarios:
-        done(_flush_cost.flush(list(c.flush_envs), c.flush_repeats))
-        done(_flush_cost.period_ends(c.period_envs, c.period_ends, c.period_every, c.flush_repeats))
-    if "e2e" in c.scenarios:
-        done(
-            *_rollout.end_to_end(
-                c.env,
-                c.backend,
-                c.e2e_envs,
-                c.e2e_steps,
-                c.e2e_repeats,
-                c.host_steps,
-                c.host_repeats,
-                c.e2e_variants,
-            )
-        )
-    if "sharded" in c.scenarios:
-        done(
-            *_sharded.sharded(
-                c.env,
-                c.backend,
-                c.sharded_per_device,
-                c.sharded_steps,
-                c.sharded_repeats,
-                c.sharded_devices,
-                c.sharded_processes,
-            )
-        )
-    done(targets(tables))
+    for name in SCENARIOS:
+        if name in config.scenarios:
+            for t in _scenario_tables(name, config, hlo_dir, profile):
+                t.scenario = name
+                done(t)
+    done(targets(tables, jax.default_backend()))
     return tables
-
-
-def _find(tables: Sequence[Table], name: str) -> Table | None:
-    return next((t for t in tables if t.name == name), None)
-
-
-def targets(tables: Sequence[Table]) -> Table:
-    """The issue's targets, against what was measured in this run."""
-    t = Table("targets", "Targets", ["target", "measured", "met"])
-    e2e = _find(tables, "end_to_end")
-    if e2e is not None:
-        pct = {r[0]: r[3] for r in e2e.rows}
-        full = pct[_rollout.LABELS["jaxmetrics"]]
-        t.add("end-to-end overhead <= 2% (10 terms)", f"{full:.2f}%", full <= 2.0)
-        lean = pct.get(_rollout.LABELS["lean"])
-        if lean is not None:
-            t.add("(same, 10 terms with simple stats only)", f"{lean:.2f}%", lean <= 2.0)
-        empty = pct.get(_rollout.LABELS["empty"])
-        if empty is not None:
-            same = e2e.data["check"]["empty_lowers_to_bare"]
-            t.add(
-                "empty spec indistinguishable from bare",
-                f"{empty:.2f}%, same program: {same}",
-                same,
-            )
-    iso = _find(tables, "isolated")
-    if iso is not None:
-        ratio = next(r[2] for r in iso.rows if r[0].startswith("jaxmetrics: full"))
-        t.add("isolated update <= 1.5x the floor", f"{ratio:.2f}x", ratio <= 1.5)
-    alt = _find(tables, "alternatives")
-    if alt is not None:
-        for key, label in (
-            ("callback_numpy", "callback -> numpy logger"),
-            ("callback_dict", "callback -> per-env dict logger"),
-            ("device_get_loop", "device_get loop -> numpy logger"),
-        ):
-            r = alt.data["ratios_to_jaxmetrics"].get(key, "absent")
-            if r == "absent":
-                continue
-            shown = "jaxmetrics overhead not above noise" if r is None else f"{r:,.0f}x"
-            t.add(
-                f">= 100x less per-step overhead than {label}",
-                shown,
-                None if r is None else r >= 100,
-            )
-    sh = _find(tables, "sharded")
-    if sh is not None:
-        over = {(r[0], r[1]): r[3] for r in sh.rows}
-        one = over.get((1, _sharded.SPECS["full"]))
-        for (d, label), pct in over.items():
-            if d > 1 and label == _sharded.SPECS["full"] and one is not None:
-                t.add(
-                    f"overhead on {d} devices within 0.5 pp of 1 device's (full spec)",
-                    f"{pct:.2f}% vs {one:.2f}%",
-                    pct - one <= 0.5,
-                )
-        left = sum(r[4] for r in sh.rows if r[1] != _sharded.SPECS["unsharded"])
-        t.add("no collective in the step loop (sharded state)", f"{left} ops", left == 0)
-    fl = _find(tables, "flush")
-    if fl is not None:
-        col = {c: k for k, c in enumerate(fl.columns)}
-        for name, what in (
-            ("Logger.flush ms", "Logger.flush call (what the loop waits for)"),
-            ("device_get ms", "synchronous compute + device_get of the report"),
-        ):
-            ms = [r[col[name]] for r in fl.rows]
-            t.add(f"flush under 1 ms: {what}", f"{max(ms):.3f} ms at most", max(ms) < 1.0)
-            t.add(
-                f"flush flat in num_envs: {what}",
-                f"max/min over num_envs {max(ms) / min(ms):.2f}",
-                None,
-            )
-        sizes = sorted({r[col["bytes to host"]] for r in fl.rows})
-        t.add("bytes to host flat in num_envs", f"{sizes}", len(sizes) == 1)
-    t.notes.append("met '-': judged by reading the numbers (noise-limited), not a threshold.")
-    return t
 
 
 def _ints(s: str) -> tuple[int, ...]:
@@ -265,7 +193,35 @@ def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace
     p.add_argument(
         "--json",
         default=None,
-        help="where to write the JSON results (default: jaxmetrics_bench_<backend>.json)",
+        help="where to write every table as one JSON (default: jaxmetrics_bench_<backend>.json, "
+        "unless --out-dir is given)",
+    )
+    p.add_argument(
+        "--out-dir",
+        default=None,
+        help="also write each scenario's tables to DIR/<kind>_<scenario>.json, the file "
+        "docs/benchmarks.md shows (e.g. docs/benchmarks/h100_isolated.json)",
+    )
+    p.add_argument(
+        "--kind",
+        default=None,
+        help="device kind in --out-dir's file names (default from the devices: cpu, h100, "
+        "h200x2, ...)",
+    )
+    p.add_argument(
+        "--commit",
+        default=None,
+        help="the tree measured, stored as git_commit (default: this checkout's HEAD; pass "
+        "it where the checkout is a copy whose .git may be stale)",
+    )
+    p.add_argument(
+        "--render",
+        nargs="?",
+        const=_render.DOC,
+        default=None,
+        metavar="DOC",
+        help=f"run nothing: rewrite the generated tables of DOC (default {_render.DOC}) from "
+        "the JSON files in the folder beside it",
     )
     p.add_argument("--hlo-dir", default=None, help="write the compiled HLO of scenario 1 here")
     p.add_argument(
@@ -305,21 +261,35 @@ def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace
 
 def main(argv: Sequence[str] | None = None) -> list[Table]:
     config, args = parse(argv)
+    if args.render is not None:
+        _render.render_file(args.render)
+        print(f"rendered {args.render}", file=sys.stderr)
+        return []
     print(
         f"jaxmetrics.bench: preset {args.preset} on {jax.devices()[0].device_kind} "
         f"({jax.default_backend()})",
         flush=True,
     )
-    path = args.json or f"jaxmetrics_bench_{jax.default_backend()}.json"
+    path = args.json or (None if args.out_dir else f"jaxmetrics_bench_{jax.default_backend()}.json")
     cfg = dataclasses.asdict(config)
     cfg["preset"] = args.preset
-    env = environment()
+    env = environment(args.commit)
     env["note"] = args.note
+    kind = args.kind or device_label(env)
+    if args.out_dir:
+        os.makedirs(args.out_dir, exist_ok=True)
+    written = [path] if path else []
 
     def on_table(table: Table, so_far: list[Table]) -> None:
         print(table.to_markdown(), flush=True)
-        write_json(path, env, cfg, so_far)  # partial results survive a killed run
+        # Partial results survive a killed run: every file is rewritten after each table.
+        if path:
+            write_json(path, env, cfg, so_far)
+        if args.out_dir and table.scenario:
+            own = os.path.join(args.out_dir, f"{kind}_{table.scenario}.json")
+            write_json(own, env, cfg, [t for t in so_far if t.scenario == table.scenario])
+            written.append(own)
 
     tables = run(config, args.hlo_dir, args.profile, on_table)
-    print(f"wrote {path}", file=sys.stderr)
+    print("wrote " + ", ".join(dict.fromkeys(written)), file=sys.stderr)
     return tables

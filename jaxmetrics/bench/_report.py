@@ -7,6 +7,7 @@ import importlib.metadata
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -27,14 +28,22 @@ class Table:
     rows: list[list[Any]] = dataclasses.field(default_factory=list)
     notes: list[str] = dataclasses.field(default_factory=list)
     data: dict[str, Any] = dataclasses.field(default_factory=dict)
+    scenario: str = ""  # the `--scenarios` name that made it ("" for the targets)
+
+    @classmethod
+    def from_dict(cls, name: str, d: dict[str, Any]) -> "Table":
+        """The table `to_dict` wrote (as read back from a results JSON)."""
+        return cls(name, d["title"], d["columns"], d["rows"], d["notes"], d["data"])
 
     def add(self, *cells: Any) -> None:
         if len(cells) != len(self.columns):
             raise ValueError(f"{self.name}: {len(cells)} cells for columns {list(self.columns)}")
         self.rows.append(list(cells))
 
-    def to_markdown(self) -> str:
-        lines = [f"### {self.title}", ""]
+    def to_markdown(self, heading: str | None = "###") -> str:
+        """The table under its title as a heading of this level (none: no title), then
+        its notes as a list."""
+        lines = [] if heading is None else [f"{heading} {self.title}", ""]
         lines.append("| " + " | ".join(self.columns) + " |")
         lines.append("|" + "---|" * len(self.columns))
         lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in self.rows]
@@ -87,8 +96,9 @@ def _git_commit() -> str | None:
     return commit if out.returncode == 0 and len(commit) == 40 else None
 
 
-def environment() -> dict[str, Any]:
-    """Machine, device, versions and date of this run."""
+def environment(commit: str | None = None) -> dict[str, Any]:
+    """Machine, device, versions and date of this run; `commit` names the tree measured
+    where the checkout's own `git rev-parse HEAD` would not (a copy with a stale `.git`)."""
     import jaxmetrics
 
     dev = jax.devices()[0]
@@ -109,11 +119,29 @@ def environment() -> dict[str, Any]:
             "count": jax.device_count(),
         },
         "versions": versions,
-        "git_commit": _git_commit(),
+        "git_commit": commit or _git_commit(),
         "command": " ".join(
             [os.path.basename(sys.executable), "-m", "jaxmetrics.bench"] + sys.argv[1:]
         ),
     }
+
+
+def device_label(env: dict[str, Any]) -> str:
+    """The device kind in a results file's name, from an `environment()`'s device: `cpu`;
+    else the model, the first word of the kind after NVIDIA's name (`tpuv4` for a TPU), with
+    the count where there are several devices (`h200x2`).
+
+    >>> device_label({"device": {"backend": "gpu", "kind": "NVIDIA H100 80GB HBM3", "count": 1}})
+    'h100'
+    >>> device_label({"device": {"backend": "gpu", "kind": "NVIDIA H200", "count": 2}})
+    'h200x2'
+    """
+    dev = env["device"]
+    if dev["backend"] == "cpu":
+        return "cpu"
+    words = [w for w in re.findall(r"[a-z0-9]+", dev["kind"].lower()) if w != "nvidia"]
+    name = "".join(words[:2]) if words[:1] == ["tpu"] else words[0]
+    return name if dev["count"] == 1 else f"{name}x{dev['count']}"
 
 
 def write_json(path: str, env: dict[str, Any], config: dict[str, Any], tables: Sequence[Table]):

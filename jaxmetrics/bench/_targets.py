@@ -1,0 +1,124 @@
+"""The targets the project holds itself to, judged on the tables of a run.
+
+A per-step host callback logger is a reference row of the alternatives, not a target:
+the hand-written floor itself is less than 100x cheaper than that logger, so a ratio to
+it measured the rollout's noise, not jaxmetrics (docs/benchmarks.md).
+"""
+
+from collections.abc import Callable, Sequence
+
+from . import _rollout, _sharded
+from ._report import Table
+
+NOTE = "met '-': judged by reading the numbers (noise-limited), not a threshold."
+
+FLOOR_RATIO = 1.5
+"""The isolated update's bound, in multiples of the hand-written floor, at every size; and
+the per-group update's, in multiples of the ungrouped one (GPU)."""
+
+E2E_POINTS = 0.3
+"""The end-to-end bound: percentage points of overhead above the floor's, same run."""
+
+DEVICES_POINTS = 0.5
+"""The many-device bound: percentage points of overhead above one device's, same run."""
+
+
+def _find(tables: Sequence[Table], name: str) -> Table | None:
+    return next((t for t in tables if t.name == name), None)
+
+
+def _isolated(t: Table, iso: Table, tables: Sequence[Table], backend: str) -> None:
+    ratio = next(r[2] for r in iso.rows if r[0].startswith("jaxmetrics: full"))
+    t.add(f"isolated update <= {FLOOR_RATIO}x the floor", f"{ratio:.2f}x", ratio <= FLOOR_RATIO)
+
+
+def _scaling(t: Table, envs: Table, tables: Sequence[Table], backend: str) -> None:
+    terms = _find(tables, "scaling_terms")
+    sizes = [(f"{r[0]:,} envs", r[3]) for r in envs.rows]
+    sizes += [(f"{r[0]:,} terms", r[3]) for r in (terms.rows if terms else [])]
+    where, worst = max(sizes, key=lambda s: s[1])
+    t.add(
+        f"isolated update <= {FLOOR_RATIO}x the floor at every size",
+        f"{worst:.2f}x at {where} (the worst of {len(sizes)})",
+        worst <= FLOOR_RATIO,
+    )
+
+
+def _groups(t: Table, gr: Table, tables: Sequence[Table], backend: str) -> None:
+    most = max(gr.rows, key=lambda r: r[0])
+    t.add(
+        f"per-group statistics, most groups <= {FLOOR_RATIO}x no groups (GPU)",
+        f"{most[2]:.2f}x at {most[0]} groups",
+        most[2] <= FLOOR_RATIO if backend != "cpu" else None,
+    )
+
+
+def _end_to_end(t: Table, e2e: Table, tables: Sequence[Table], backend: str) -> None:
+    pct = {r[0]: r[3] for r in e2e.rows}
+    full = pct[_rollout.LABELS["jaxmetrics"]]
+    floor = pct.get(_rollout.LABELS["floor"])
+    if floor is not None:
+        t.add(
+            f"end-to-end overhead within {E2E_POINTS} pp of the floor's (every statistic)",
+            f"{full:.2f}% vs {floor:.2f}%",
+            full - floor <= E2E_POINTS,
+        )
+    empty = pct.get(_rollout.LABELS["empty"])
+    if empty is not None:
+        same = e2e.data["check"]["empty_lowers_to_bare"]
+        t.add("empty spec indistinguishable from bare", f"{empty:.2f}%, same program: {same}", same)
+
+
+def _many_devices(t: Table, sh: Table, tables: Sequence[Table], backend: str) -> None:
+    over = {(r[0], r[1]): r[3] for r in sh.rows}
+    one = over.get((1, _sharded.SPECS["full"]))
+    for (d, label), pct in over.items():
+        if d > 1 and label == _sharded.SPECS["full"] and one is not None:
+            t.add(
+                f"overhead on {d} devices within {DEVICES_POINTS} pp of 1 device's (full spec)",
+                f"{pct:.2f}% vs {one:.2f}%",
+                pct - one <= DEVICES_POINTS,
+            )
+    left = sum(r[4] for r in sh.rows if r[1] != _sharded.SPECS["unsharded"])
+    t.add("no collective in the step loop (sharded state)", f"{left} ops", left == 0)
+
+
+def _flush(t: Table, fl: Table, tables: Sequence[Table], backend: str) -> None:
+    col = {c: k for k, c in enumerate(fl.columns)}
+    ms = [r[col["Logger.flush ms"]] for r in fl.rows]
+    t.add("Logger.flush returns in under 1 ms", f"{max(ms):.3f} ms at most", max(ms) < 1.0)
+    t.add("Logger.flush flat in num_envs", f"max/min over num_envs {max(ms) / min(ms):.2f}", None)
+    sizes = sorted({r[col["bytes to host"]] for r in fl.rows})
+    t.add("bytes to host flat in num_envs", f"{sizes}", len(sizes) == 1)
+
+
+Judge = Callable[[Table, Table, Sequence[Table], str], None]
+
+JUDGES: tuple[tuple[str, Judge], ...] = (
+    ("isolated", _isolated),
+    ("scaling_envs", _scaling),
+    ("groups", _groups),
+    ("end_to_end", _end_to_end),
+    ("sharded", _many_devices),
+    ("flush", _flush),
+)
+"""Per table that a target is judged on, the judge that adds its rows, in the order the
+targets are listed."""
+
+
+def targets(tables: Sequence[Table], backend: str) -> Table:
+    """The project's targets, against what was measured in `tables` on `backend` (the
+    per-group bound is a GPU's: on a CPU its row is left to the reader)."""
+    t = Table("targets", "Targets", ["target", "measured", "met"])
+    for name, judge in JUDGES:
+        table = _find(tables, name)
+        if table is not None and table.rows:
+            judge(t, table, tables, backend)
+    t.notes.append(NOTE)
+    return t
+
+
+def order(tables: Sequence[Table]) -> int:
+    """Where the targets of `tables` come in the list (to list those of several runs)."""
+    names = {t.name for t in tables}
+    return next((i for i, (name, _) in enumerate(JUDGES) if name in names), len(JUDGES))
