@@ -8,9 +8,12 @@ Each run is what Playground's `learning/train_jax_ppo.py` does for a DM Control 
 `registry.load` with the env's default config (`impl` set per run), Playground's tuned
 `dm_control_suite_params.brax_ppo_config` (num_envs, batch size, unroll, minibatches, ...),
 seed 1, a separately loaded `eval_env`, and Playground's XLA flags; then
-`ppo.train(..., wrap_env_fn=W)` with W either Playground's `wrapper.wrap_for_brax_training`
-(`playground`) or the one-line change `functools.partial(jmp.wrap, metrics=metrics,
-logger=logger, report_every=...)` (`jaxmetrics`). What differs from Playground's config:
+`ppo.train(..., wrap_env_fn=W)` with W one of Playground's `wrapper.wrap_for_brax_training`
+(`playground`), the one-line change `functools.partial(jmp.wrap, metrics=metrics,
+logger=logger, report_every=...)` (`jaxmetrics`), or `jmp.wrap` with the same metrics and no
+logger (`fold`: it folds on every step and never reports). The metrics: episode return and
+length and every reward component, each with mean, std, min, max, count and a window(100).
+What differs from Playground's config:
 
 - `num_timesteps` and `num_evals` (a few million steps in several intervals, instead of
   60M in 9);
@@ -19,7 +22,10 @@ logger=logger, report_every=...)` (`jaxmetrics`). What differs from Playground's
   `unroll_length * batch_size * num_minibatches / num_envs` = 480 steps per env unless
   `num_timesteps` asks for more than one training step per epoch (at Playground's 60M it does
   not), so with 10 resets no training episode (1000 steps) ever ends: the wrapper reports
-  records of 0 episodes. `--runs warp:jaxmetrics:10` runs that setting.
+  records of 0 episodes. `--runs warp:jaxmetrics:10` runs that setting (with the same
+  `num_timesteps`, 10 times the steps: Brax runs at least one training step per epoch). Brax's
+  `training/sps` is then 10 times too high: it divides the steps of every reset's epoch by
+  the time of one.
 
 A run spec is `impl:wrap[:num_resets_per_eval]`. Per run: env steps per second between
 consecutive progress calls over the intervals in which no backend compile ended
@@ -30,6 +36,7 @@ files by TensorBoard's `event_accumulator` (per record: step, episode count, mea
 length), and the episode counts expected per record: the episodes have a fixed length (the
 time limit; CartpoleBalance never terminates early) and start together, so every env ends
 one at each multiple of `episode_length` of its steps since its last reset.
+`--merge A.json B.json --out C.json` joins the runs of several outputs.
 """
 
 import argparse
@@ -39,6 +46,7 @@ import math
 import os
 import platform
 import shutil
+import statistics
 import sys
 import tempfile
 import time
@@ -61,7 +69,7 @@ from ._brax_train import (
 )
 
 ENV = "CartpoleBalance"
-WRAPS = ("jaxmetrics", "playground")
+WRAPS = ("jaxmetrics", "fold", "playground")
 IMPLS = ("warp", "jax")
 STATS = ("mean", "std", "min", "max", "count", jm.window(100))
 RETURN = "Episode_Metrics/episode_return"
@@ -232,6 +240,10 @@ def run_one(spec: str, args: argparse.Namespace, counter: CompileCounter) -> dic
         extra["wrap_env_fn"] = functools.partial(
             jmp.wrap, metrics=metrics, logger=logger, report_every=report_every
         )
+    elif wrap == "fold":
+        extra["wrap_env_fn"] = functools.partial(
+            jmp.wrap, metrics=jm.Metrics(terms=build_terms(env))
+        )
     else:
         extra["wrap_env_fn"] = wrapper.wrap_for_brax_training
 
@@ -307,27 +319,29 @@ def environment(commit: str | None) -> dict[str, Any]:
 
 
 def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per impl: steady steps/s and Brax's training/sps of each wrap, and the reporting
-    wrapper's cost against Playground's (time per step, %)."""
-    out: dict[str, Any] = {}
+    """Per impl (and `num_resets_per_eval` other than 0) and wrap: the runs' mean steady
+    steps/s, Brax's training/sps and wall time; per wrap but Playground's, its cost against
+    Playground's wrap (time per step, %)."""
+    groups: dict[str, dict[str, list[dict[str, Any]]]] = {}
     for r in runs:
         if "error" in r:
             continue
-        key = r["impl"] if r["settings"]["num_resets_per_eval"] == 0 else (
-            f"{r['impl']}_resets{r['settings']['num_resets_per_eval']}"
-        )  # fmt: skip
-        row = out.setdefault(key, {})
-        row[r["wrap"]] = {
-            "steady_sps": r["steady_sps"],
-            "brax_training_sps": r["brax_training_sps"],
-            "wall_s": r["wall_s"],
-        }
-    for row in out.values():
-        ours, theirs = row.get("jaxmetrics"), row.get("playground")
-        if ours and theirs:
-            for key in ("steady_sps", "brax_training_sps"):
-                if ours[key] and theirs[key]:
-                    row[f"overhead_{key}_pct"] = 100.0 * (theirs[key] / ours[key] - 1.0)
+        resets = r["settings"]["num_resets_per_eval"]
+        key = r["impl"] if resets == 0 else f"{r['impl']}_resets{resets}"
+        groups.setdefault(key, {}).setdefault(r["wrap"], []).append(r)
+    out: dict[str, Any] = {}
+    for key, by_wrap in groups.items():
+        row = out[key] = {}
+        for wrap, rs in by_wrap.items():
+            row[wrap] = {"runs": len(rs)} | {
+                k: statistics.mean(r[k] for r in rs)
+                for k in ("steady_sps", "brax_training_sps", "wall_s")
+            }
+        theirs = row.get("playground")
+        for wrap, ours in row.items():
+            if theirs and wrap != "playground":
+                for k in ("steady_sps", "brax_training_sps"):
+                    ours[f"overhead_{k}_pct"] = 100.0 * (theirs[k] / ours[k] - 1.0)
     return out
 
 
@@ -352,11 +366,24 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     )
     p.add_argument("--commit", default=None, help="git commit of the tree (`git rev-parse HEAD`)")
     p.add_argument("--out", default=None)
+    p.add_argument("--merge", nargs="+", default=None, help="join these outputs' runs into --out")
     return p.parse_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     args = _parse(argv)
+    if args.merge:
+        docs = [json.load(open(p)) for p in args.merge]
+        doc = dict(docs[0])
+        doc["runs"] = [r | {"from": os.path.basename(p)} for p, d in zip(args.merge, docs)
+                       for r in d["runs"]]  # fmt: skip
+        doc["merged_from"] = [{"file": os.path.basename(p), "environment": d["environment"],
+                               "args": d["args"]} for p, d in zip(args.merge, docs)]  # fmt: skip
+        doc["summary"] = summarize(doc["runs"])
+        print(json.dumps(doc["summary"], indent=1))
+        if args.out:
+            _write(args.out, doc)
+        return
     # Playground's training script sets these before JAX starts its backend.
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "") + " --xla_gpu_triton_gemm_any=True"
