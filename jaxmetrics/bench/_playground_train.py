@@ -72,6 +72,8 @@ ENV = "CartpoleBalance"
 WRAPS = ("jaxmetrics", "fold", "playground")
 IMPLS = ("warp", "jax")
 STATS = ("mean", "std", "min", "max", "count", jm.window(100))
+REPORTS_PER_EPOCH = 5
+"""Records per training epoch by default (every 96 env-batch steps of Playground's 480)."""
 RETURN = "Episode_Metrics/episode_return"
 LENGTH = "Episode_Metrics/episode_length"
 
@@ -328,7 +330,10 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
             continue
         resets = r["settings"]["num_resets_per_eval"]
         key = r["impl"] if resets == 0 else f"{r['impl']}_resets{resets}"
-        groups.setdefault(key, {}).setdefault(r["wrap"], []).append(r)
+        wrap, every = r["wrap"], r["settings"].get("report_every")
+        if every and every != r["settings"]["epoch_env_steps"] // REPORTS_PER_EPOCH:
+            wrap += f"_{r['settings']['epoch_env_steps'] // every}_per_epoch"
+        groups.setdefault(key, {}).setdefault(wrap, []).append(r)
     out: dict[str, Any] = {}
     for key, by_wrap in groups.items():
         row = out[key] = {}
@@ -358,7 +363,7 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--timesteps", type=int, default=7_864_320, help="8 epochs of 983,040")
     p.add_argument("--num-evals", type=int, default=9, help="progress calls (Playground's 10)")
     p.add_argument("--num-resets-per-eval", type=int, default=0, help="Playground's 10")
-    p.add_argument("--reports-per-epoch", type=int, default=5)
+    p.add_argument("--reports-per-epoch", type=int, default=REPORTS_PER_EPOCH)
     p.add_argument("--report-every", type=int, default=None, help="default: see above")
     p.add_argument("--seed", type=int, default=1, help="train_jax_ppo.py's default")
     p.add_argument(
