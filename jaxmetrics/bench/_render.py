@@ -49,17 +49,40 @@ def tables(doc: dict[str, Any]) -> list[Table]:
     out: `render` judges the targets again), or a `_brax_train` file's calls."""
     if doc.get("benchmark") == "brax_ppo_train":
         return _brax_results.tables(doc)
+    if doc.get("benchmark") == "playground_ppo_train":
+        return [_playground_table(doc)]
     return [Table.from_dict(n, d) for n, d in doc["scenarios"].items() if n != TARGETS]
 
 
+def _playground_table(doc: dict[str, Any]) -> Table:
+    """Steady training steps/s per physics and wrapper, against Playground's own wrap."""
+    t = Table(
+        "playground_ppo_train",
+        "Playground's CartpoleBalance training (Brax `ppo.train`)",
+        ["physics", "wrapper", "runs", "steady steps/s", "cost %"],
+    )
+    for impl, variants in doc["summary"].items():
+        base = variants.get("playground")
+        for wrap, v in variants.items():
+            cost = "" if base is None or wrap == "playground" else v["overhead_steady_sps_pct"]
+            t.add(impl, wrap, v["runs"], round(v["steady_sps"]), cost)
+    return t
+
+
 def _versions(v: Mapping[str, Any]) -> str:
-    names = ("jax", "jaxlib", "brax", "mujoco-mjx", "mujoco_mjx")
+    names = ("jax", "jaxlib", "brax", "mujoco-mjx", "mujoco_mjx", "playground", "warp_lang")
     return ", ".join(f"{n.replace('_', '-')} {v[n]}" for n in names if v.get(n))
 
 
 def source(name: str, doc: dict[str, Any]) -> str:
     """Where and how a results file was measured, in one paragraph."""
     env = doc["environment"]
+    if doc.get("benchmark") == "playground_ppo_train":
+        return (
+            f"`{name}`: {env['device']} x{env['device_count']}; {_versions(env)}. Means over "
+            "runs; the cost is the steady steps/s lost against Playground's own wrap of the "
+            "same physics, in %."
+        )
     if doc.get("benchmark") == "brax_ppo_train":
         device = f"{env['device']} x{env['device_count']}"
         return (
