@@ -29,15 +29,14 @@ from . import _history, _tags
 from ._count import Count, to_int
 from ._emit import InGraphEmit
 from ._history import History
-from ._layout import mesh_of, placed, replicated
 from ._metrics import Metrics
-from ._report import Record, RecordBuilder, Writer, check_writers, derived_tags
+from ._programs import report_programs, tag_table
+from ._report import Record, RecordBuilder, Writer, check_writers
 from ._seeds import SeedsSummary, summary_tags
 from ._spec import check_name
 from ._state import MetricsState
 from ._tags import TagInfo
 from ._timer import Timers
-from ._transfer import Packer
 from ._validate import is_int, is_number
 
 WritersArg = Sequence[Writer] | Callable[[int], Sequence[Writer]]
@@ -70,21 +69,6 @@ def _close_quietly(writers: Sequence[Sequence[Any]]) -> None:
                     pass
 
 
-class _Layout:
-    """A state's tree of shardings as a cache key (compared by value)."""
-
-    def __init__(self, tree: MetricsState):
-        self.finished = tree.finished
-        leaves, treedef = jax.tree.flatten(tree)
-        self._key = (tuple(leaves), treedef)
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, _Layout) and self._key == other._key
-
-    def __hash__(self) -> int:
-        return hash(self._key)
-
-
 class NonFiniteError(FloatingPointError):
     """Raised on the caller's thread for metrics whose nonfinite policy is "raise"."""
 
@@ -109,61 +93,6 @@ class WriterError(RuntimeError):
 class WriterTimeoutError(WriterError, TimeoutError):
     """A writer call has not returned within the `Logger`'s `timeout`: the writer thread
     is stuck, and nothing queued behind the call is written until it returns."""
-
-
-def _programs(metrics: Metrics, runs: int, include_running: bool) -> tuple[Packer, Any, Any]:
-    """The packer, the in-graph `compute` (state -> packed report) and the jitted flush
-    programs (per mesh and layout) of a spec, `runs` and `include_running`.
-
-    Kept on the spec (they live as long as it does): its loggers share them, so a new
-    Logger of a spec compiles nothing new."""
-    key = (runs, include_running)
-    cached = vars(metrics).setdefault("_logger_programs", {})
-    if key in cached:
-        return cached[key]
-
-    def report(state):
-        return metrics.compute(state, include_running=include_running)
-
-    # The layout of the packed report, from shapes alone: the host side works before
-    # (and without) any trace of the flush.
-    shapes = jax.eval_shape(lambda: report(metrics.init(1)))
-    order = [i.tag for i in _tag_table(metrics, include_running) if i.tag in shapes]
-    packer = Packer(shapes, order, metrics.dtype)
-
-    def compute(state):
-        return packer.pack(report(state))
-
-    def compute_reset(state):
-        new = metrics.reset_period(state)
-        return compute(state), new.finished, new.logged
-
-    batched = compute_reset if runs == 1 else jax.vmap(compute_reset)
-
-    def flush_fn(mesh: jax.sharding.Mesh | None, layout: Any) -> Callable[..., Any]:
-        # On a sharded state's mesh: the packed report whole on every device, so that
-        # every process can read its copy (O(metrics) bytes cross devices), and the
-        # reset statistics split as they came in, so the next steps stay shard-local.
-        def run(state):
-            packed, finished, logged = batched(state)
-            if mesh is None:
-                return packed, finished, logged
-            return replicated(packed, mesh), placed(finished, layout.finished), logged
-
-        return jax.jit(run)
-
-    cached[key] = (packer, compute, functools.cache(flush_fn))
-    return cached[key]
-
-
-def _tag_table(metrics: Metrics, include_running: bool) -> tuple[TagInfo, ...]:
-    """The logger's static tags: the spec's, running values on request, derived ones."""
-    running = [
-        _tags.info(metrics.prefixes["episode"], "episode", name, "running")
-        for name, spec in metrics.metric_specs.items()
-        if include_running and spec.reduce is not None and spec.group is None
-    ]
-    return metrics.tags + tuple(running) + tuple(derived_tags(metrics.tags))
 
 
 def _scalars(where: str, **args: Any) -> tuple[jax.Array, ...]:
@@ -364,7 +293,7 @@ class Logger(AbstractContextManager):
         check_name(timer_prefix, "Logger(timer_prefix=...)")
         self.metrics = metrics
         self.runs = int(runs)
-        self.tags: tuple[TagInfo, ...] = _tag_table(metrics, include_running)
+        self.tags: tuple[TagInfo, ...] = tag_table(metrics, include_running)
         _tags.check_unique((i.tag, _tags.origin(i)) for i in self.tags)
         self.summary_tags: tuple[TagInfo, ...] = ()
         if seeds_summary is not None:
@@ -405,7 +334,8 @@ class Logger(AbstractContextManager):
         self._builders = [RecordBuilder(edges) for _ in range(self.runs)]
         self._nonfinite_tags = [i.tag for i in metrics.tags if i.stat == "nonfinite"]
 
-        self._packer, compute, self._flush_fns = _programs(metrics, runs, include_running)
+        self._programs = report_programs(metrics, self.runs, bool(include_running))
+        self._packer, compute = self._programs.packer, self._programs.compute
         self._emit = InGraphEmit(compute, metrics.reset_period, self._on_emit)
         # The reporting wrappers' emit: no run argument, seeds by their vmapped position.
         self._wrapper_emit = InGraphEmit(
@@ -420,7 +350,7 @@ class Logger(AbstractContextManager):
         self._notices: list[str] = []
         self._env_steps_tag = _tags.tag(metrics._counter_prefix, "env_steps", "total")
         self._compute = compute
-        self._layout_id = _history.layout_id(type(metrics._spec)._fields[0], include_running)
+        self._layout_id = _history.layout_id(metrics.config_id, include_running)
         self._timers = Timers()
         self._timeout = None if timeout is None else float(timeout)
         self._lock = threading.Lock()
@@ -530,9 +460,7 @@ class Logger(AbstractContextManager):
     def _report_and_reset(self, state: MetricsState) -> Any:
         """Dispatches the jitted flush program for the state's layout: `((floats, counts),
         finished, logged)`, the packed report and the reset statistics."""
-        mesh = mesh_of(state)
-        layout = None if mesh is None else _Layout(jax.tree.map(lambda x: x.sharding, state))
-        return self._flush_fns(mesh, layout)(state)
+        return self._programs.report_and_reset(state)
 
     def timer(self, name: str) -> AbstractContextManager[None]:
         """`with logger.timer("rollout"): ...` adds the block's wall time to the tag

@@ -41,6 +41,7 @@ HOST = {
     "_emit",
     "_history",
     "_logger",
+    "_programs",
     "_report",
     "_reporting",
     "_seeds",
