@@ -47,7 +47,7 @@ def make_writers(writers: WritersArg, runs: int, writes: bool) -> list[list[Writ
         made: list[Any] = []
         try:
             for r in range(runs):
-                made.append(list(writers(r)))  # type: ignore[operator]
+                made.append(list(writers(r)))
         except BaseException:
             close_quietly(*made)
             raise
