@@ -3,21 +3,25 @@
 `Logger.emit` reaches the host through an ordered `io_callback`; a program holding one
 stays out of JAX's persistent compilation cache, and vmapping it needs a `custom_vmap`
 rule. Here each period end writes the packed report (`_transfer`) and its step into
-slot `ends` of a `History` carried with the training state; the host writes the records
-after the jitted call (`Logger.write_history`). Everything is plain `lax.switch` and
-`.at[].set`, so `vmap` and sharding need no rule of their own.
+slot `ends` of a `History` carried with the training state; after the jitted call `fetch`
+brings it to the host, its records in writing order (`Logger.write_history`). Everything
+in-graph is plain `lax.switch` and `.at[].set`, so `vmap` and sharding need no rule of
+their own.
 """
 
 import collections
 import functools
+import heapq
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ._count import Count
+from ._count import Count, to_int
 from ._transfer import Packer
+from ._validate import is_int
 
 _INT32_MAX = 2**31 - 1
 
@@ -51,7 +55,17 @@ def layout_id(spec_field: str, include_running: bool) -> tuple:
 
 
 def init(packer: Packer, capacity: int, layout: tuple) -> History:
-    """An empty history of `capacity` records."""
+    """An empty history of `capacity` records.
+
+    Raises:
+      ValueError: for a capacity that is not an int >= 1.
+    """
+    if not is_int(capacity) or capacity < 1:
+        raise ValueError(
+            f"Logger.history_init: capacity must be an int >= 1 (the period ends the "
+            f"jitted call records), got {capacity!r}."
+        )
+    capacity = int(capacity)
     return History(
         jnp.zeros((capacity, packer.num_floats), packer.dtype),
         jnp.zeros((capacity, 2, packer.num_counts), jnp.uint32),
@@ -139,4 +153,64 @@ def check(history: Any, layout: tuple, packer: Packer, lead: tuple[int, ...], wh
             f"{who}: the history's floats have shape {shape}, expected "
             f"{(*lead, 'capacity', *want)}: one history per run, stacked on a leading "
             "[runs] axis for Logger(runs > 1) (vmapped seeds)."
+        )
+
+
+class FetchedHistory(NamedTuple):
+    """A history on the host, its records in the order they are written.
+
+    Attributes:
+      floats: `[runs, capacity, F]` packed float statistics.
+      counts: uint32 `[runs, capacity, 2, K]` packed exact counts.
+      order: `(step, run, slot)` per record kept: each run's records in the order its
+        periods ended, the runs interleaved by step.
+      kept: `[runs]` records kept per run.
+      ends: `[runs]` period ends per run (more than `capacity`: it overflowed).
+    """
+
+    floats: np.ndarray
+    counts: np.ndarray
+    order: list[tuple[int, int, int]]
+    kept: np.ndarray
+    ends: np.ndarray
+
+
+def fetch(history: History, runs: int) -> FetchedHistory:
+    """Copies a (checked) history of `runs` runs to the host."""
+    floats, counts, hi, lo, ends = jax.device_get(
+        (history.floats, history.counts, history.steps.hi, history.steps.lo, history.ends)
+    )
+    capacity = history.floats.shape[-2]
+    steps = np.reshape(to_int(Count(hi, lo)), (runs, capacity))
+    ends = np.reshape(ends, (runs,))
+    kept = np.minimum(ends, capacity)
+    order = heapq.merge(
+        *[[(int(steps[r, k]), r, k) for k in range(int(kept[r]))] for r in range(runs)]
+    )
+    return FetchedHistory(
+        np.reshape(floats, (runs, capacity, -1)),
+        np.reshape(counts, (runs, capacity, 2, -1)),
+        list(order),
+        kept,
+        ends,
+    )
+
+
+def check_overflow(history: FetchedHistory) -> None:
+    """Raises if the history had more period ends than its capacity.
+
+    Raises:
+      ValueError: naming how many period ends were not kept and the capacity that holds
+        them all.
+    """
+    capacity = history.floats.shape[1]
+    over = [(r, int(n)) for r, n in enumerate(history.ends) if n > capacity]
+    if over:
+        shown = ", ".join(f"run {r}: {n} period ends" for r, n in over)
+        raise ValueError(
+            f"Logger.write_history: the history overflowed ({shown}; capacity "
+            f"{capacity}): the {capacity} records it holds per run are written, the "
+            "period ends past them were not kept (the state returned with it still "
+            "holds those periods: flush it to report them). Create the history with "
+            f"logger.history_init({max(n for _, n in over)}) or more."
         )

@@ -1,236 +1,45 @@
-"""The `Logger`: in-graph compute + reset, an async copy, a writer thread, and the errors.
+"""The `Logger`: the API over the host flush, `emit`, report histories and the writer thread.
 
-`Logger.flush` dispatches one jitted `compute` + `reset_period` (only the reduced report
-crosses to the host, never O(num_envs)), starts the report's device -> host copy and
-queues it for the writer thread; it returns the reset state without waiting for the
-device or the disk. `Logger.emit` is the same path for training loops inside one `jit`.
-The writer thread turns reports into `Record`s (`_report`) and hands them to the writers;
-what goes wrong there, and the non-finite policy, surface on the caller's thread.
+A value's way from `flush` to a writer, one module a step:
+1. `_programs`: the jitted report program computes and resets the period, and packs the
+   report into two arrays (`_transfer.Packer`); `flush` starts their copy to the host;
+2. `_writer_thread`: the job that writes them is queued for the writer thread;
+3. `_runs`: unpacks each run's part and builds its `Record` (`_report.RecordBuilder`);
+4. the run's writers get the record, and `_seeds_run` the seeds summary's.
+`emit` enters at step 2 through `_emit` (in-graph) and `_emitted` (host); `write_history`
+through `_history`. What goes wrong on the way surfaces on the caller's thread (`_errors`).
 """
 
-import atexit
 import functools
-import heapq
-import os
-import queue
-import sys
-import threading
 import time
-import warnings
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Sequence
 from contextlib import AbstractContextManager
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from . import _history, _tags
-from ._count import Count, to_int
+from . import _close_at_exit, _history, _tags
+from ._call_checks import check_settings, check_state, check_step, is_traced, scalar_args
+from ._count import Count
 from ._emit import InGraphEmit
+from ._emitted import EmitReceiver
+from ._errors import CallerReports
+from ._errors import NonFiniteError as NonFiniteError
+from ._errors import WriterError as WriterError
+from ._errors import WriterTimeoutError as WriterTimeoutError
 from ._history import History
 from ._metrics import Metrics
-from ._report import Record, RecordBuilder, Writer, check_writers, derived_tags
-from ._seeds import SeedsSummary, summary_tags
-from ._sharding import mesh_of, placed, replicated
+from ._programs import report_programs, tag_table
+from ._report import Writer
+from ._runs import RunWriters, WritersArg, make_writers
+from ._seeds_run import SeedsSummaryRun, summary_run_tags, summary_writers
 from ._spec import check_name
 from ._state import MetricsState
 from ._tags import TagInfo
 from ._timer import Timers
-from ._transfer import Packer
-from ._validate import is_int, is_number
-
-WritersArg = Sequence[Writer] | Callable[[int], Sequence[Writer]]
-
-
-def _unused(writers: WritersArg, runs: int) -> list[list[Writer]]:
-    """Writers of a process other than 0: a factory is never called (nothing is created);
-    writers already made are closed unused."""
-    if not callable(writers) or isinstance(writers, Writer):
-        _close_quietly([list(writers)] if not isinstance(writers, Writer) else [[writers]])
-    return [[] for _ in range(runs)]
-
-
-def _writer_list(writers: Any) -> list[Any]:
-    """`writers` as a list for `_close_quietly` (a lone writer or a non-list as one)."""
-    if isinstance(writers, Writer) or not isinstance(writers, Sequence):
-        return [writers]
-    return list(writers)
-
-
-def _close_quietly(writers: Sequence[Sequence[Any]]) -> None:
-    """Closes what was created before a construction error (that error is what matters)."""
-    for ws in writers:
-        for w in ws:
-            close = getattr(w, "close", None)
-            if callable(close):
-                try:
-                    close()
-                except Exception:  # noqa: BLE001, S110
-                    pass
-
-
-class _Layout:
-    """A state's tree of shardings as a cache key (compared by value)."""
-
-    def __init__(self, tree: MetricsState):
-        self.finished = tree.finished
-        leaves, treedef = jax.tree.flatten(tree)
-        self._key = (tuple(leaves), treedef)
-
-    def __eq__(self, other: object) -> bool:
-        return isinstance(other, _Layout) and self._key == other._key
-
-    def __hash__(self) -> int:
-        return hash(self._key)
-
-
-class NonFiniteError(FloatingPointError):
-    """Raised on the caller's thread for metrics whose nonfinite policy is "raise"."""
-
-
-class WriterError(RuntimeError):
-    """Every writer failure since the last check, raised together on the caller's thread.
-
-    Attributes:
-      failures: one exception per failure, in the order they happened; each message
-        names the writer, the run and the step (its `__cause__` is the writer's error).
-    """
-
-    def __init__(self, failures: Sequence[BaseException]):
-        self.failures = tuple(failures)
-        super().__init__(
-            f"{len(self.failures)} failure(s) writing records; what they did not write is "
-            "lost, the rest is on disk:\n  " + "\n  ".join(str(f) for f in self.failures)
-        )
-        self.__cause__ = self.failures[0] if self.failures else None
-
-
-class WriterTimeoutError(WriterError, TimeoutError):
-    """A writer call has not returned within the `Logger`'s `timeout`: the writer thread
-    is stuck, and nothing queued behind the call is written until it returns."""
-
-
-def _programs(metrics: Metrics, runs: int, include_running: bool) -> tuple[Packer, Any, Any]:
-    """The packer, the in-graph `compute` (state -> packed report) and the jitted flush
-    programs (per mesh and layout) of a spec, `runs` and `include_running`.
-
-    Kept on the spec (they live as long as it does): its loggers share them, so a new
-    Logger of a spec compiles nothing new."""
-    key = (runs, include_running)
-    cached = vars(metrics).setdefault("_logger_programs", {})
-    if key in cached:
-        return cached[key]
-
-    def report(state):
-        return metrics.compute(state, include_running=include_running)
-
-    # The layout of the packed report, from shapes alone: the host side works before
-    # (and without) any trace of the flush.
-    shapes = jax.eval_shape(lambda: report(metrics.init(1)))
-    order = [i.tag for i in _tag_table(metrics, include_running) if i.tag in shapes]
-    packer = Packer(shapes, order, metrics.dtype)
-
-    def compute(state):
-        return packer.pack(report(state))
-
-    def compute_reset(state):
-        new = metrics.reset_period(state)
-        return compute(state), new.finished, new.logged
-
-    batched = compute_reset if runs == 1 else jax.vmap(compute_reset)
-
-    def flush_fn(mesh: jax.sharding.Mesh | None, layout: Any) -> Callable[..., Any]:
-        # On a sharded state's mesh: the packed report whole on every device, so that
-        # every process can read its copy (O(metrics) bytes cross devices), and the
-        # reset statistics split as they came in, so the next steps stay shard-local.
-        def run(state):
-            packed, finished, logged = batched(state)
-            if mesh is None:
-                return packed, finished, logged
-            return replicated(packed, mesh), placed(finished, layout.finished), logged
-
-        return jax.jit(run)
-
-    cached[key] = (packer, compute, functools.cache(flush_fn))
-    return cached[key]
-
-
-def _tag_table(metrics: Metrics, include_running: bool) -> tuple[TagInfo, ...]:
-    """The logger's static tags: the spec's, running values on request, derived ones."""
-    running = [
-        _tags.info(metrics.prefixes["episode"], "episode", name, "running")
-        for name, spec in metrics.metric_specs.items()
-        if include_running and spec.reduce is not None and spec.group is None
-    ]
-    return metrics.tags + tuple(running) + tuple(derived_tags(metrics.tags))
-
-
-def _scalars(where: str, **args: Any) -> tuple[jax.Array, ...]:
-    """The in-graph arguments as scalar arrays: `when` a bool, the others ints."""
-    out = []
-    for name, v in args.items():
-        v = jnp.asarray(v)
-        ok = v.dtype == jnp.bool_ if name == "when" else jnp.issubdtype(v.dtype, jnp.integer)
-        if not ok or v.shape != ():
-            kind = "a bool" if name == "when" else "an int"
-            raise TypeError(f"{where}: {name} must be {kind} scalar, got {v.dtype}{list(v.shape)}.")
-        out.append(v)
-    return tuple(out)
-
-
-# How long the writer thread lets an emit's callback finish before writing its records.
-_CALLBACK_GRACE_S = 0.005
-
-# Loggers not yet closed, closed together at interpreter exit (in creation order).
-_OPEN: dict[int, "Logger"] = {}
-
-
-def _close_all_at_exit() -> None:
-    """Closes every open logger; if any loses records, says so and exits with status 1
-    (an exception in an exit handler would be printed and the process would exit 0)."""
-    failed = []
-    for logger in list(_OPEN.values()):
-        try:
-            logger.close()
-        except Exception as e:  # noqa: BLE001 (reported below)
-            failed.append(e)
-    if failed:
-        for stream in (sys.stdout, sys.stderr):
-            stream.flush()
-        sys.stderr.write(
-            "jaxmetrics: closing the Logger(s) at interpreter exit failed; exiting with "
-            "status 1:\n" + "\n".join(f"  {type(e).__name__}: {e}" for e in failed) + "\n"
-        )
-        sys.stderr.flush()
-        os._exit(1)
-
-
-atexit.register(_close_all_at_exit)
-
-
-def _shifted(host: Callable[[], Mapping[str, Any]], tag: str, offset: int) -> dict[str, Any]:
-    """The host report with the count `tag` raised by `offset`."""
-    values = dict(host())
-    values[tag] = values[tag] + offset
-    return values
-
-
-class _PendingNonFinite(NamedTuple):
-    """A report whose non-finite counts the caller's thread has yet to check."""
-
-    step: Any  # int, or an int array of shape () or [len(runs)]
-    runs: tuple[int, ...]
-    counts: Any  # packed counts, [len(runs), 2, K] (the leading axis may be absent for one)
-
-
-def _warn_at_caller(message: str) -> None:
-    """A `RuntimeWarning` attributed to the first frame outside this module: the line that
-    called `flush`, `wait` or `close` (or left the `with` block)."""
-    level, frame = 1, sys._getframe(0)
-    while frame is not None and frame.f_code.co_filename == __file__:
-        level, frame = level + 1, frame.f_back
-    warnings.warn(message, RuntimeWarning, stacklevel=level)
+from ._validate import is_int
+from ._writer_thread import WriterThread
 
 
 class Logger(AbstractContextManager):
@@ -355,124 +164,54 @@ class Logger(AbstractContextManager):
     ):
         if not isinstance(metrics, Metrics):
             raise TypeError(f"Logger: metrics must be a jaxmetrics.Metrics, got {metrics!r}.")
-        if not is_int(runs) or runs < 1:
-            raise ValueError(f"Logger: runs must be an int >= 1, got {runs!r}.")
-        if not is_int(max_pending) or max_pending < 1:
-            raise ValueError(f"Logger: max_pending must be an int >= 1, got {max_pending!r}.")
-        if timeout is not None and (not is_number(timeout) or not timeout > 0):
-            raise ValueError(f"Logger: timeout must be seconds > 0 or None, got {timeout!r}.")
-        check_name(timer_prefix, "Logger(timer_prefix=...)")
+        check_settings(runs, max_pending, timeout, timer_prefix)
         self.metrics = metrics
         self.runs = int(runs)
-        self.tags: tuple[TagInfo, ...] = _tag_table(metrics, include_running)
+        self.include_running = bool(include_running)
+        self.tags: tuple[TagInfo, ...] = tag_table(metrics, self.include_running)
         _tags.check_unique((i.tag, _tags.origin(i)) for i in self.tags)
-        self.summary_tags: tuple[TagInfo, ...] = ()
-        if seeds_summary is not None:
-            if self.runs < 2:
-                _close_quietly([_writer_list(seeds_summary)])
-                raise ValueError(
-                    f"Logger(runs={self.runs}, seeds_summary=...): a summary across seeds "
-                    "needs runs >= 2 (vmapped seeds)."
-                )
-            try:
-                self.summary_tags = summary_tags(self.tags)
-            except ValueError:
-                _close_quietly([_writer_list(seeds_summary)])
-                raise
-        self._timer_prefix = timer_prefix
-        self._timer_tags: set[str] = set()
+        self.summary_tags = summary_run_tags(seeds_summary, self.runs, self.tags)
         # Under jax.distributed every process runs the same program; process 0 writes.
         self.writes = jax.process_index() == 0
-        self._writers = (
-            self._make_writers(writers, self.runs) if self.writes else _unused(writers, self.runs)
-        )
-        self._summary_writers: list[Writer] = []
-        if seeds_summary is not None and not self.writes:
-            _close_quietly([_writer_list(seeds_summary)])
-        elif seeds_summary is not None:
-            try:
-                self._summary_writers = check_writers(seeds_summary, "Logger(seeds_summary=...)")
-            except TypeError:
-                _close_quietly([*self._writers, _writer_list(seeds_summary)])
-                raise
-        self._summary = (
-            SeedsSummary(self.summary_tags, self.runs) if self._summary_writers else None
-        )
-        self._infos = {i.tag: i for i in self.tags}
+        run_writers = make_writers(writers, self.runs, self.writes)
+        summary = summary_writers(seeds_summary, self.writes, run_writers)
+
+        self._programs = report_programs(metrics, self.runs, self.include_running)
+        packer, compute = self._programs.packer, self._programs.compute
+        nonfinite_tags = [i.tag for i in metrics.tags if i.stat == "nonfinite"]
+        self._reports = CallerReports(packer, metrics.nonfinite, nonfinite_tags)
+        self._thread = WriterThread(self._reports, max_pending, timeout)
         edges = {
             i.tag: metrics.histogram_edges(i.tag) for i in metrics.tags if i.stat == "histogram"
         }
-        self._builders = [RecordBuilder(edges) for _ in range(self.runs)]
-        self._nonfinite_tags = [i.tag for i in metrics.tags if i.stat == "nonfinite"]
-
-        self._packer, compute, self._flush_fns = _programs(metrics, runs, include_running)
+        summary_run = SeedsSummaryRun(summary, self.summary_tags, self.runs, self._thread)
+        self._runs = RunWriters(
+            run_writers, summary_run, self.tags, edges, packer, self._thread, self._reports
+        )
+        self._emitted = EmitReceiver(
+            self.runs, packer, metrics.tags, self._runs.write_run, self._thread, self._reports
+        )
         self._emit = InGraphEmit(compute, metrics.reset_period, self._on_emit)
         # The reporting wrappers' emit: no run argument, seeds by their vmapped position.
         self._wrapper_emit = InGraphEmit(
             compute, metrics.reset_period, self._on_emit, runs_by_position=self.runs
         )
-        self.include_running = bool(include_running)
-        # Per run, a reporting wrapper's last env-step count and the offset that continues
-        # the count after the trainer resets the envs (its last record's step: both added).
-        self._wrapper_raw: list[int | None] = [None] * self.runs
-        self._wrapper_offset = [0] * self.runs
-        # Written records worth a word (steps that went back): warnings, not errors.
-        self._notices: list[str] = []
-        self._env_steps_tag = _tags.tag(metrics._rows.counter_prefix, "env_steps", "total")
-        self._compute = compute
-        self._layout_id = _history.layout_id(type(metrics._spec)._fields[0], include_running)
+        self._history_id = _history.layout_id(metrics.config_id, self.include_running)
+        self._timer_prefix = timer_prefix
+        self._timer_tags: set[str] = set()
         self._timers = Timers()
-        self._timeout = None if timeout is None else float(timeout)
-        self._lock = threading.Lock()
-        # Held while deciding "open or closed" and queueing: nothing lands behind close.
-        self._door = threading.Lock()
-        self._busy: tuple[str, float] | None = None  # the writer call under way, since
         self._last_step: int | None = None  # the last host-int step flushed (all runs)
-        self._written_step: list[int | None] = [None] * self.runs  # on the writer thread
-        self._errors: list[BaseException] = []
-        self._unchecked: list[_PendingNonFinite] = []
-        self._slots = threading.Semaphore(max_pending)
-        self._queue: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
-        self._closed = False
-        self.emit_calls = 0
         self.report_nbytes = 0
-        try:
-            for ws in self._writers:
-                for w in ws:
-                    w.open(self.tags)
-            for w in self._summary_writers:
-                w.open(self.summary_tags)
-        except BaseException:
-            _close_quietly([*self._writers, self._summary_writers])
-            raise
-        self._thread = threading.Thread(target=self._work, name="jaxmetrics-logger", daemon=True)
+        self._runs.open(self.tags, self.summary_tags)
         self._thread.start()
         # Daemon threads die at interpreter exit: drain whatever is queued first.
-        _OPEN[id(self)] = self
+        _close_at_exit.register(self)
 
-    @staticmethod
-    def _make_writers(writers: WritersArg, runs: int) -> list[list[Writer]]:
-        if callable(writers) and not isinstance(writers, Writer):
-            made: list[list[Any]] = []
-            try:
-                for r in range(runs):
-                    made.append(list(writers(r)))
-            except BaseException:
-                _close_quietly(made)
-                raise
-        elif runs > 1:
-            raise TypeError(
-                f"Logger(runs={runs}): pass writers as a function run -> writers, e.g. "
-                "lambda run: [jm.TensorBoardWriter(f'{root}/seed_{run}')], so that each run "
-                "writes to its own place."
-            )
-        else:
-            made = [writers]
-        try:
-            return [check_writers(ws, "Logger") for ws in made]
-        except TypeError:
-            _close_quietly([ws for ws in made if isinstance(ws, list)])
-            raise
+    @property
+    def emit_calls(self) -> int:
+        """Host callbacks received from `emit` (one per period end, whatever the number of
+        vmapped seeds in it)."""
+        return self._emitted.calls
 
     # ------------------------------------------------------------------ host loop
 
@@ -498,41 +237,27 @@ class Logger(AbstractContextManager):
           RuntimeError: the logger is closed.
           When it raises, the flush has done nothing (see the class docstring).
         """
-        self._check_open("flush")
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(state)):
+        self._thread.check_open("flush")
+        if is_traced(state):
             raise TypeError(
                 "Logger.flush is a host call and cannot run inside jit/vmap/scan; inside "
                 "a jitted training loop use logger.emit(state, step, when)."
             )
-        self._check_leading(state)
-        self._check_step(step)
+        check_state(state, self.runs)
+        check_step(step, self.runs, self._last_step)
         # What earlier flushes left to report is raised before this one acts.
-        self._surface(self._take_unchecked())
-        self._await(lambda t: self._slots.acquire(timeout=t), "flush")
-        try:
-            (floats, counts), finished, logged = self._report_and_reset(state)
+        self._reports.surface()
+        with self._thread.reserved("flush") as put:
+            (floats, counts), finished, logged = self._programs.report_and_reset(state)
             floats.copy_to_host_async()
             counts.copy_to_host_async()
-            with self._door:
-                self._check_open("flush")
-                timers = self._timers.take()
-                self._queue.put(functools.partial(self._write_flush, floats, counts, step, timers))
-        except BaseException:
-            self._slots.release()
-            raise
+            timers = self._timers.take()
+            put(functools.partial(self._runs.write_flush, floats, counts, step, timers))
         self.report_nbytes = floats.nbytes + counts.nbytes
         if is_int(step):
             self._last_step = int(step)
-        with self._lock:
-            self._unchecked.append(_PendingNonFinite(step, tuple(range(self.runs)), counts))
+        self._reports.check_later(step, tuple(range(self.runs)), counts)
         return state._replace(finished=finished, logged=logged)
-
-    def _report_and_reset(self, state: MetricsState) -> Any:
-        """Dispatches the jitted flush program for the state's layout: `((floats, counts),
-        finished, logged)`, the packed report and the reset statistics."""
-        mesh = mesh_of(state)
-        layout = None if mesh is None else _Layout(jax.tree.map(lambda x: x.sharding, state))
-        return self._flush_fns(mesh, layout)(state)
 
     def timer(self, name: str) -> AbstractContextManager[None]:
         """`with logger.timer("rollout"): ...` adds the block's wall time to the tag
@@ -566,52 +291,40 @@ class Logger(AbstractContextManager):
           state: the restored state (with a leading `[runs]` axis when `runs > 1`).
           step: the step of the checkpoint.
         """
-        self._check_open("resume")
-        self._check_leading(state)
+        self._thread.check_open("resume")
+        check_state(state, self.runs)
         if not is_int(step) or not 0 <= step < 2**63:
             raise ValueError(f"Logger.resume: step must be an int in [0, 2^63), got {step!r}.")
-        totals = self._packer.totals(self._report_and_reset(state)[0][1], self.runs)
+        (_, counts), _, _ = self._programs.report_and_reset(state)
+        totals = self._programs.packer.totals(counts, self.runs)
         now = time.time()
-        with self._door:
-            self._check_open("resume")
-            for run in range(self.runs):
-                self._builders[run].start(now, totals[run])
+        with self._thread.entry("resume"):
+            self._runs.resume(now, totals, int(step))
             self._last_step = int(step)
-            self._written_step = [int(step)] * self.runs
 
     def wait(self) -> None:
         """Blocks until everything flushed or emitted so far is written.
 
         Raises what was deferred (see the class docstring).
         """
-        self._check_open("wait")
+        self._thread.check_open("wait")
         jax.effects_barrier()
-        done = threading.Event()
-        with self._door:
-            self._check_open("wait")
-            self._queue.put(self._drain_summary)
-            self._queue.put(done.set)
-        self._await(done.wait, "wait")
-        self._surface(self._take_unchecked())
+        self._thread.drain("wait", self._runs.drain_summary)
+        self._reports.surface()
 
     def close(self) -> None:
         """Drains everything in order, closes the writers and stops the writer thread.
 
         Idempotent. Raises what was deferred, after the writers are closed.
         """
-        if self._closed:
+        if self._thread.closed:
             return
         jax.effects_barrier()  # emits still in flight land before the door closes
-        with self._door:
-            if self._closed:
-                return
-            self._closed = True
-            self._queue.put(self._drain_summary)
-            self._queue.put(self._close_writers)
-            self._queue.put(None)
-        _OPEN.pop(id(self), None)
-        self._await(lambda t: (self._thread.join(t), not self._thread.is_alive())[1], "close")
-        self._surface(self._take_unchecked())
+        if not self._thread.stop(self._runs.drain_summary, self._runs.close_writers):
+            return
+        _close_at_exit.forget(self)
+        self._thread.wait_stopped("close")
+        self._reports.surface()
 
     def __exit__(self, *exc: object) -> None:
         self.close()
@@ -652,83 +365,24 @@ class Logger(AbstractContextManager):
           >>> [(r.step, r.scalars["Train/x"]) for r in memory[1].records]
           [(1, 10.5), (3, 12.5)]
         """
-        self._check_open("emit")
+        self._thread.check_open("emit")
         if run is None:
             if self.runs != 1:
                 raise TypeError(f"Logger(runs={self.runs}).emit needs run=<run index>.")
             run = jnp.zeros((), jnp.int32)
-        step, run, when = _scalars("Logger.emit", step=step, run=run, when=when)
+        step, run, when = scalar_args("Logger.emit", step=step, run=run, when=when)
         return self._emit(state, step, when, run)
 
     def _emit_from_wrapper(self, state: MetricsState, step: Count, when: jax.Array) -> MetricsState:
         """`emit` for a reporting wrapper (`_reporting.Reporter`): the step is an exact
         `Count` (env steps pass 2^31 in long runs), and under `vmap` each seed's position
         on the vmapped axis is its run."""
-        self._check_open("emit")
+        self._thread.check_open("emit")
         return self._wrapper_emit(state, step, when, jnp.zeros((), jnp.int32))
 
-    def _on_emit(
-        self, packed: tuple[np.ndarray, np.ndarray], step: Any, when: Any, run: Any
-    ) -> None:
-        wall_time = time.time()
-        from_wrapper = isinstance(step, Count)
-        if from_wrapper:  # env steps, exact
-            step = to_int(step)
-        # io_callback hands over jax Arrays: one copy to numpy here, not a device
-        # dispatch per statistic when the writer thread unpacks them.
-        n = int(np.size(when))
-        floats = np.reshape(np.asarray(packed[0]), (n, -1))
-        counts = np.reshape(np.asarray(packed[1]), (n, 2, -1))
-        step, when, run = (np.reshape(np.asarray(a), (n,)) for a in (step, when, run))
-        with self._door, self._lock:
-            if self._closed:
-                # Raised inside the jitted call that emitted, the only place left to say it.
-                raise RuntimeError("Logger.emit: the logger is closed; create a new Logger.")
-            self.emit_calls += 1
-            queued = False
-            for i in np.flatnonzero(when):
-                r, s = int(run[i]), int(step[i])
-                if not 0 <= r < self.runs:
-                    self._errors.append(
-                        ValueError(f"Logger.emit: run index {r} is outside [0, {self.runs}).")
-                    )
-                    continue
-                host = functools.partial(self._packer.unpack, floats[i], counts[i])
-                if from_wrapper:
-                    s, host = self._continued(r, s, host)
-                self._unchecked.append(_PendingNonFinite(s, (r,), counts[i]))
-                if not queued:
-                    # The device waits for this callback, and JAX still runs Python after
-                    # it returns; a writer thread woken now would hold the GIL through a
-                    # record's Python (TensorBoard's is milliseconds) and keep the device
-                    # idle meanwhile. It first sleeps, so that the callback returns alone.
-                    self._queue.put(functools.partial(time.sleep, _CALLBACK_GRACE_S))
-                    queued = True
-                self._queue.put(functools.partial(self._write_run, r, host, s, wall_time, {}))
-
-    def _continued(
-        self, run: int, raw: int, host: Callable[[], Mapping[str, Any]]
-    ) -> tuple[int, Callable[[], Mapping[str, Any]]]:
-        """A reporting wrapper's step and host report, continued across env resets.
-
-        A trainer that resets its envs (Brax's `num_resets_per_eval`) restarts the
-        wrapper's statistics and env-step count; its next record would go back in steps.
-        The record's step and `Counters/env_steps` continue from the run's last record
-        instead: the steps between that record and the reset are not counted (none when
-        the period divides the steps between resets)."""
-        last = self._wrapper_raw[run]
-        if last is not None and raw <= last:
-            self._wrapper_offset[run] += last
-            self._notices.append(
-                f"run {run}: the envs were reset after step {self._wrapper_offset[run]} (e.g. "
-                "Brax's num_resets_per_eval): windows and EMAs restarted, and episodes ended "
-                "since that record were not reported; records go on from that step"
-            )
-        self._wrapper_raw[run] = raw
-        offset = self._wrapper_offset[run]
-        if offset == 0:
-            return raw, host
-        return offset + raw, functools.partial(_shifted, host, self._env_steps_tag, offset)
+    def _on_emit(self, packed: tuple[Any, Any], step: Any, when: Any, run: Any) -> None:
+        """The host callback of the in-graph emits (`_emitted.EmitReceiver`)."""
+        self._emitted(packed, step, when, run)
 
     # ------------------------------------------------------------------ report history
 
@@ -743,13 +397,8 @@ class Logger(AbstractContextManager):
         Raises:
           ValueError: for a capacity that is not an int >= 1.
         """
-        self._check_open("history_init")
-        if not is_int(capacity) or capacity < 1:
-            raise ValueError(
-                f"Logger.history_init: capacity must be an int >= 1 (the period ends the "
-                f"jitted call records), got {capacity!r}."
-            )
-        return _history.init(self._packer, int(capacity), self._layout_id)
+        self._thread.check_open("history_init")
+        return _history.init(self._programs.packer, capacity, self._history_id)
 
     def record(
         self, state: MetricsState, history: History, step: Any, when: Any
@@ -797,12 +446,13 @@ class Logger(AbstractContextManager):
           >>> [(r.step, r.scalars["Train/x"]) for r in memory[1].records]
           [(1, 10.5), (3, 12.5)]
         """
-        self._check_open("record")
-        step, when = _scalars("Logger.record", step=step, when=when)
+        self._thread.check_open("record")
+        step, when = scalar_args("Logger.record", step=step, when=when)
         if not isinstance(state, MetricsState):
             raise TypeError(f"Logger.record: expected a MetricsState, got {type(state).__name__}.")
-        _history.check(history, self._layout_id, self._packer, (), "Logger.record")
-        return _history.record(self._compute, self.metrics.reset_period, state, history, step, when)
+        _history.check(history, self._history_id, self._programs.packer, (), "Logger.record")
+        compute, reset = self._programs.compute, self.metrics.reset_period
+        return _history.record(compute, reset, state, history, step, when)
 
     def write_history(self, history: History) -> None:
         """Writes every record of a report history (`record`), in order, per run: each
@@ -828,283 +478,20 @@ class Logger(AbstractContextManager):
             calls.
           RuntimeError: the logger is closed.
         """
-        self._check_open("write_history")
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(history)):
+        self._thread.check_open("write_history")
+        if is_traced(history):
             raise TypeError(
                 "Logger.write_history is a host call: return the history from the jitted "
                 "function and write it after the call."
             )
         lead = () if self.runs == 1 else (self.runs,)
-        _history.check(history, self._layout_id, self._packer, lead, "Logger.write_history")
-        self._surface(self._take_unchecked())
-        floats, counts, hi, lo, ends = jax.device_get(
-            (history.floats, history.counts, history.steps.hi, history.steps.lo, history.ends)
-        )
-        capacity = history.floats.shape[-2]
-        floats = np.reshape(floats, (self.runs, capacity, -1))
-        counts = np.reshape(counts, (self.runs, capacity, 2, -1))
-        steps = np.reshape(to_int(Count(hi, lo)), (self.runs, capacity))
-        ends = np.reshape(ends, (self.runs,))
-        kept = np.minimum(ends, capacity)
-        # Each run's records in their order, the runs interleaved by step.
-        order = list(
-            heapq.merge(
-                *[[(int(steps[r, k]), r, k) for k in range(int(kept[r]))] for r in range(self.runs)]
-            )
-        )
+        packer = self._programs.packer
+        _history.check(history, self._history_id, packer, lead, "Logger.write_history")
+        self._reports.surface()
+        fetched = _history.fetch(history, self.runs)
         wall_time = time.time()
-        with self._door:
-            self._check_open("write_history")
-            self._queue.put(
-                functools.partial(self._write_history, order, floats, counts, kept, wall_time)
-            )
-        with self._lock:
-            self._unchecked += [_PendingNonFinite(s, (r,), counts[r, k]) for s, r, k in order]
-        over = [(r, int(ends[r])) for r in range(self.runs) if ends[r] > capacity]
-        if over:
-            shown = ", ".join(f"run {r}: {n} period ends" for r, n in over)
-            raise ValueError(
-                f"Logger.write_history: the history overflowed ({shown}; capacity "
-                f"{capacity}): the {capacity} records it holds per run are written, the "
-                "period ends past them were not kept (the state returned with it still "
-                "holds those periods: flush it to report them). Create the history with "
-                f"logger.history_init({max(n for _, n in over)}) or more."
-            )
-
-    def _write_history(
-        self,
-        order: Sequence[tuple[int, int, int]],
-        floats: np.ndarray,
-        counts: np.ndarray,
-        kept: np.ndarray,
-        wall_time: float,
-    ) -> None:
-        for step, r, k in order:
-            host = functools.partial(self._packer.unpack, floats[r, k], counts[r, k])
-            try:  # one bad record (a step out of range) does not stop the others
-                self._write_run(r, host, step, wall_time, {}, new_point=False)
-            except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
-                with self._lock:
-                    self._errors.append(e)
-        for r in range(self.runs):
-            if kept[r]:
-                totals = self._packer.totals(counts[r, kept[r] - 1], 1)[0]
-                self._builders[r].start(wall_time, totals)
-        self._drain_summary()
-
-    # ------------------------------------------------------------------ writer thread
-
-    def _work(self) -> None:
-        while True:
-            job = self._queue.get()
-            if job is None:
-                return
-            try:
-                job()
-            except BaseException as e:  # noqa: BLE001 (handed to the caller's thread)
-                with self._lock:
-                    self._errors.append(e)
-
-    def _write_flush(self, floats: jax.Array, counts: jax.Array, step: Any, timers: dict) -> None:
-        try:
-            f = np.reshape(np.asarray(floats), (self.runs, -1))
-            c = np.reshape(np.asarray(counts), (self.runs, 2, -1))
-            # Stamped once the device has computed the report (the fetches above wait for
-            # it), not when `flush` dispatched it: a host loop runs ahead of the device, so
-            # dispatch times would make the first rates (`/per_sec`) far too high.
-            wall_time = time.time()
-            steps = np.broadcast_to(np.asarray(step), (self.runs,))
-            for r in range(self.runs):
-                host = functools.partial(self._packer.unpack, f[r], c[r])
-                self._write_run(r, host, int(steps[r]), wall_time, timers)
-        finally:
-            self._slots.release()
-
-    def _write_run(
-        self,
-        run: int,
-        host: Callable[[], Mapping[str, Any]],
-        step: int,
-        wall_time: float,
-        timers: dict,
-        new_point: bool = True,
-    ) -> None:
-        if not 0 <= step < 2**63:
-            raise ValueError(
-                f"run {run}: step {step} is outside [0, 2^63) (TensorBoard's int64); the "
-                "record was not written."
-            )
-        last = self._written_step[run]
-        if last is not None and step < last:
-            # The record is written (nothing is lost); charts draw back over themselves.
-            with self._lock:
-                self._notices.append(
-                    f"run {run}: step {step} written after step {last}; steps should not "
-                    "decrease (charts draw back over themselves). To resume a run from an "
-                    "earlier step, create its writers with purge_step=<step>."
-                )
-        self._written_step[run] = step
-        values = [(self._infos[tag], v) for tag, v in host().items()]
-        record = self._builders[run](values, step, wall_time, timers, new_point=new_point)
-        self._write_to(self._writers[run], f"run {run}", record)
-        if self._summary is not None:
-            for summary in self._summary.add(run, record):
-                self._write_to(self._summary_writers, "the seeds summary", summary)
-
-    def _write_to(self, writers: Sequence[Writer], run: str, record: Record) -> None:
-        """Gives `record` to each writer; a failure is kept for the caller's thread and
-        the other writers still get the record."""
-        step = record.step
-        for w in writers:
-            try:
-                self._call(f"writer {w!r} of {run} (write, step {step})", w.write, record)
-            except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
-                err = RuntimeError(f"writer {w!r} of {run} failed at step {step}: {e!r}")
-                err.__cause__ = e
-                with self._lock:
-                    self._errors.append(err)
-
-    def _drain_summary(self) -> None:
-        """Writes the summary of the steps that some seeds have not reached."""
-        if self._summary is not None:
-            for summary in self._summary.drain():
-                self._write_to(self._summary_writers, "the seeds summary", summary)
-
-    def _close_writers(self) -> None:
-        named = [(f"run {run}", ws) for run, ws in enumerate(self._writers)]
-        for run, ws in [*named, ("the seeds summary", self._summary_writers)]:
-            for w in ws:
-                try:
-                    self._call(f"writer {w!r} of {run} (close)", w.close)
-                except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
-                    err = RuntimeError(f"closing writer {w!r} of {run} failed: {e!r}")
-                    err.__cause__ = e
-                    with self._lock:
-                        self._errors.append(err)
-
-    def _call(self, what: str, fn: Callable[..., None], *args: Any) -> None:
-        """A writer call, timed for `_await`."""
-        self._busy = (what, time.monotonic())
-        try:
-            fn(*args)
-        finally:
-            self._busy = None
-
-    def _await(self, wait: Callable[[float], bool], fn: str) -> None:
-        """Calls `wait(seconds)` until it returns True; raises `WriterTimeoutError` once
-        a writer call has been under way for longer than the timeout."""
-        while not wait(0.05):
-            busy = self._busy
-            if busy is None or self._timeout is None:
-                continue
-            stuck = time.monotonic() - busy[1]
-            if stuck > self._timeout:
-                with self._lock:
-                    errors, self._errors = self._errors, []
-                raise WriterTimeoutError(
-                    [
-                        TimeoutError(
-                            f"Logger.{fn}: {busy[0]} has not returned for {stuck:.0f} s "
-                            f"(timeout={self._timeout:g} s); what is queued behind it is not "
-                            "written. Find what blocks the writer (a hung network disk?), or "
-                            "pass Logger(timeout=None) to wait for ever."
-                        ),
-                        *errors,
-                    ]
-                )
-
-    # ------------------------------------------------------------------ checks
-
-    def _check_open(self, fn: str) -> None:
-        if self._closed:
-            raise RuntimeError(f"Logger.{fn}: the logger is closed; create a new Logger.")
-
-    def _check_leading(self, state: Any) -> None:
-        if not isinstance(state, MetricsState):
-            raise TypeError(f"Logger.flush: expected a MetricsState, got {type(state).__name__}.")
-        # A leaf and its own axes (counters [C], logged [R], finished [shards, R]).
-        leaves = (
-            (None if state.counters is None else state.counters.lo, 1),
-            (None if state.logged is None else state.logged.mean, 1),
-            (None if state.finished is None else state.finished.mean, 2),
-        )
-        found = next(((x, own) for x, own in leaves if x is not None), None)
-        if found is None:
-            return
-        leaf, own = found
-        lead = tuple(leaf.shape[:-own])
-        want = () if self.runs == 1 else (self.runs,)
-        if lead != want:
-            hint = (
-                f"for {lead[0]} vmapped seeds create Logger(..., runs={lead[0]})"
-                if self.runs == 1 and len(lead) == 1
-                else f"pass the states of all {self.runs} runs stacked on a leading axis"
-            )
-            raise ValueError(
-                f"Logger(runs={self.runs}).flush: the state has leading axes {lead}, "
-                f"expected {want}; {hint}."
-            )
-
-    def _check_step(self, step: Any) -> None:
-        ok = is_int(step)
-        if not ok and hasattr(step, "dtype") and hasattr(step, "shape"):
-            ok = jnp.issubdtype(step.dtype, jnp.integer) and tuple(step.shape) in ((), (self.runs,))
-        if not ok:
-            raise TypeError(
-                f"Logger.flush: step must be an int (or an int array of shape () or "
-                f"({self.runs},)), got {step!r}."
-            )
-        if not is_int(step):
-            return  # a device array: checked on the writer thread
-        if not 0 <= step < 2**63:
-            raise ValueError(
-                f"Logger.flush: step must be in [0, 2^63) (TensorBoard stores int64), got {step}."
-            )
-        last = self._last_step
-        if last is not None and step < last:
-            raise ValueError(
-                f"Logger.flush: step {step} after step {last}; steps must not decrease (charts "
-                "would draw back over themselves). To resume a run from an earlier step, "
-                "create a new Logger whose writers have purge_step=<step>."
-            )
-
-    def _take_unchecked(self) -> list[_PendingNonFinite]:
-        with self._lock:
-            out, self._unchecked = self._unchecked, []
-        return out
-
-    def _surface(self, pending: Sequence[_PendingNonFinite]) -> None:
-        """Applies the non-finite policy to earlier reports on the caller's thread (warns
-        for "skip", raises `NonFiniteError` for "raise") and raises what was deferred."""
-        with self._lock:
-            notices, self._notices = self._notices, []
-        for message in notices:
-            _warn_at_caller(message)
-        raising: list[str] = []
-        for check in pending:
-            n = len(check.runs)
-            counts = np.reshape(np.asarray(check.counts), (n, 2, -1))
-            steps = np.broadcast_to(np.asarray(check.step), (n,))
-            for i, run in enumerate(check.runs):
-                if not self._packer.any_nonzero(counts[i], self._nonfinite_tags):
-                    continue
-                found = self._packer.unpack(None, counts[i], self._nonfinite_tags)
-                for info, policy, count in self.metrics.nonfinite(found):
-                    kind = "term" if info.group == "episode" else "logged value"
-                    message = (
-                        f"step {int(steps[i])}, run {run}: {kind} {info.metric!r}: {count} "
-                        f"non-finite value(s) left out or statistic(s) overflowed ({info.tag})"
-                    )
-                    if policy == "raise":
-                        raising.append(message)
-                    elif policy == "skip":
-                        _warn_at_caller(message)
-        with self._lock:
-            errors, self._errors = self._errors, []
-        if errors:
-            error = WriterError(errors)
-            if raising:
-                error.add_note("Also non-finite values: " + "; ".join(raising))
-            raise error
-        if raising:
-            raise NonFiniteError("; ".join(raising))
+        with self._thread.entry("write_history") as put:
+            put(functools.partial(self._runs.write_history, fetched, wall_time))
+        for step, run, slot in fetched.order:
+            self._reports.check_later(step, (run,), fetched.counts[run, slot])
+        _history.check_overflow(fetched)

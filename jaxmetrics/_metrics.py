@@ -618,3 +618,9 @@ class Metrics:
             if count:
                 out.append((i, specs[(i.group, i.metric)].nonfinite, int(count)))
         return out
+
+    @property
+    def config_id(self) -> str:
+        """The identity of this spec's configuration (the field name `MetricsState.spec`
+        carries): specs built with the same configuration share it."""
+        return type(self._spec)._fields[0]

@@ -96,6 +96,19 @@ def check_writers(writers: Any, who: str) -> list[Writer]:
     return out
 
 
+def close_quietly(*groups: Any) -> None:
+    """Closes the writers made before a construction error (that error is what matters,
+    not theirs): each argument a writer, or a sequence of writers."""
+    for group in groups:
+        for w in [group] if isinstance(group, Writer) or not isinstance(group, Sequence) else group:
+            close = getattr(w, "close", None)
+            if callable(close):
+                try:
+                    close()
+                except Exception:  # noqa: BLE001, S110
+                    pass
+
+
 def derived_tags(tags: Iterable[TagInfo]) -> list[TagInfo]:
     """The tags a record adds to a report's: counters' `/per_sec` and histogram tails."""
     out = []

@@ -67,7 +67,7 @@ class Reporter:
     ):
         if not isinstance(logger, Logger):
             raise TypeError(f"{where}(logger=...) must be a jaxmetrics.Logger, got {logger!r}.")
-        if logger.metrics._spec._fields != metrics._spec._fields:
+        if logger.metrics.config_id != metrics.config_id:
             raise ValueError(
                 f"{where}: the Logger was built for another Metrics spec; create it with the "
                 "wrapper's spec: jm.Logger(metrics, writers)."

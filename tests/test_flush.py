@@ -1,6 +1,7 @@
 """The host flush: non-blocking, drained in order by close(), durable across SIGKILL,
 deterministic non-finite errors, counters per second, timers, vmapped runs."""
 
+import gc
 import inspect
 import json
 import os
@@ -338,6 +339,27 @@ def test_flush_moves_o_metrics_bytes_whatever_num_envs():
     # mean, window mean/std/min/max + 8 window values as float32; nonfinite and the two
     # counters as uint32 hi/lo pairs.
     assert sizes == [(5 + 8) * 4 + 3 * 2 * 4] * 2
+
+
+def test_loggers_of_a_spec_share_its_programs_and_they_go_with_the_spec():
+    from jaxmetrics import _programs
+
+    def report_once(metrics):
+        with jm.Logger(metrics, [jm.MemoryWriter()]) as logger:
+            state = metrics.log(metrics.init(1), {"x": jnp.float32(1.0)})
+            state = logger.flush(state, 0)
+            jax.jit(lambda s: logger.emit(s, 1, jnp.bool_(True)))(state)
+            with jm.Logger(metrics, []) as other:
+                assert other._programs is logger._programs  # nothing new to compile
+        return len(_programs._CACHE)
+
+    gc.collect()  # the specs of earlier tests that are already garbage
+    before = len(_programs._CACHE)
+    metrics = _log_metrics()
+    assert report_once(metrics) == before + 1
+    del metrics
+    gc.collect()
+    assert len(_programs._CACHE) == before
 
 
 def test_packer_layout_comes_from_shapes_before_anything_is_traced():

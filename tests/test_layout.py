@@ -40,15 +40,23 @@ CORE = {
 }
 # The wrappers that report by themselves hand reports to the Logger: host layer.
 HOST = {
+    "_call_checks",
+    "_close_at_exit",
     "_emit",
+    "_emitted",
+    "_errors",
     "_history",
     "_logger",
+    "_programs",
     "_report",
     "_reporting",
+    "_runs",
     "_seeds",
+    "_seeds_run",
     "_timer",
     "_transfer",
     "_wrap_step",
+    "_writer_thread",
 }
 LAYERS = [CORE, HOST, {"_writers"}, {"brax"}, {"playground"}, {"examples", "bench", "__init__"}]
 # What a writer sees (TagInfo, Record, the registries) must not pull in JAX.

@@ -40,8 +40,8 @@ several outputs.
 `--time-callbacks` times the host side of every report of the reporting variants
 (`callback_times`, perf_counter): JAX's own host function around ours (`io_callback_impl`:
 the operands put on the CPU device, then our function), `Logger._on_emit` (numpy copies,
-queueing the job), the writer thread's job per record (`_write_run`: unpack, `Record`, every
-writer) and the main writer's `write`; each with its start. `--callback-probe` measures, in
+queueing the job), the writer thread's job per record (`RunWriters.write_run`: unpack,
+`Record`, every writer) and the main writer's `write`; each with its start. `--callback-probe` measures, in
 a small jitted device loop (no Brax), what one ordered `io_callback` under `lax.cond`
 costs: the loop's time with a callback every k iterations against none.
 
@@ -254,7 +254,7 @@ class CallbackTimes:
       the operands `device_put` on the CPU device, then ours), wrapped in the module for
       the run (it is looked up there at every call);
     - `on_emit`: `Logger._on_emit` (a `Logger` subclass: the logger binds it when built);
-    - `writer_job`: the writer thread's job per record (`Logger._write_run`: unpack,
+    - `writer_job`: the writer thread's job per record (`RunWriters.write_run`: unpack,
       build the `Record`, every writer);
     - `write`: the main writer's `write` (its instance attribute, wrapped).
 
@@ -285,12 +285,18 @@ class CallbackTimes:
                 finally:
                     times._note("on_emit", t)
 
-            def _write_run(self, *args: Any, **kwargs: Any) -> None:
-                t = time.perf_counter()
-                try:
-                    return super()._write_run(*args, **kwargs)
-                finally:
-                    times._note("writer_job", t)
+            def __init__(self, *args: Any, **kwargs: Any) -> None:
+                super().__init__(*args, **kwargs)
+                write_run = self._runs.write_run
+
+                def timed_write_run(*args: Any, **kwargs: Any) -> None:
+                    t = time.perf_counter()
+                    try:
+                        return write_run(*args, **kwargs)
+                    finally:
+                        times._note("writer_job", t)
+
+                self._runs.write_run = timed_write_run
 
         return TimedLogger
 
