@@ -43,7 +43,8 @@ the operands put on the CPU device, then our function), `Logger._on_emit` (numpy
 queueing the job), the writer thread's job per record (`RunWriters.write_run`: unpack,
 `Record`, every writer) and the main writer's `write`; each with its start.
 `--callback-probe` measures, in a small jitted device loop (no Brax), what one ordered
-`io_callback` under `lax.cond` costs: the loop's time with a callback every k iterations against none.
+`io_callback` under `lax.cond` costs: the loop's time with a callback every k iterations
+against none.
 
 `--trace VARIANTS` takes a `jax.profiler` trace of the last interval of those variants'
 runs (left out of the steady figures) and stores a summary of it in the run's result
