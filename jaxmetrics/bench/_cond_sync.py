@@ -16,7 +16,7 @@ scanned step of `--kernels` small kernels over `--envs` floats:
 
 Each variant runs in a fresh process per `--xla-flags` setting (XLA reads its flags once).
 
-`python -m jaxmetrics.bench._cond_sync --xla-flags "" "--xla_gpu_enable_command_buffer="`
+`python -m jaxmetrics.bench._cond_sync --xla-flags=--xla_gpu_enable_command_buffer=`
 """
 
 import argparse
@@ -86,7 +86,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=2000)
     p.add_argument("--period", type=int, default=1000)
     p.add_argument("--repeats", type=int, default=5)
-    p.add_argument("--xla-flags", nargs="*", default=[""], help="one process per setting")
+    p.add_argument(
+        "--xla-flags",
+        action="append",
+        help="XLA_FLAGS to add, one process per use (write --xla-flags=--xla_...); the "
+        "default flags always run first",
+    )
     p.add_argument("--out", help="write the results here as JSON")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
@@ -95,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(measure(*sizes)))
         return 0
     rows = []
-    for flags in a.xla_flags:
+    for flags in ["", *(a.xla_flags or ())]:
         env = {
             **os.environ,
             "XLA_FLAGS": " ".join(filter(None, (os.environ.get("XLA_FLAGS"), flags))),
