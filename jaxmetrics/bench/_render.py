@@ -51,6 +51,8 @@ def tables(doc: dict[str, Any]) -> list[Table]:
         return _brax_results.tables(doc)
     if doc.get("benchmark") == "playground_ppo_train":
         return [_playground_table(doc)]
+    if doc.get("benchmark") == "cond_sync":
+        return [_cond_sync_table(doc)]
     return [Table.from_dict(n, d) for n, d in doc["scenarios"].items() if n != TARGETS]
 
 
@@ -69,6 +71,24 @@ def _playground_table(doc: dict[str, Any]) -> Table:
     return t
 
 
+def _cond_sync_table(doc: dict[str, Any]) -> Table:
+    """Microseconds per step of a scanned step of small kernels, per XLA_FLAGS setting."""
+    from ._cond_sync import VARIANTS
+
+    n = doc["sizes"]
+    t = Table(
+        "cond_sync",
+        f"A step of {n['kernels']} small kernels over {n['envs']:,} floats, us/step",
+        ["XLA_FLAGS", *VARIANTS],
+    )
+    for row in doc["rows"]:
+        t.add(
+            f"`{row['xla_flags']}`" if row["xla_flags"] else "(default)",
+            *(row["us_per_step"][v] for v in VARIANTS),
+        )
+    return t
+
+
 def _versions(v: Mapping[str, Any]) -> str:
     names = ("jax", "jaxlib", "brax", "mujoco-mjx", "mujoco_mjx", "playground", "warp_lang")
     return ", ".join(f"{n.replace('_', '-')} {v[n]}" for n in names if v.get(n))
@@ -76,6 +96,12 @@ def _versions(v: Mapping[str, Any]) -> str:
 
 def source(name: str, doc: dict[str, Any]) -> str:
     """Where and how a results file was measured, in one paragraph."""
+    if doc.get("benchmark") == "cond_sync":
+        n = doc["sizes"]
+        return (
+            f"`{name}`: {doc['device']}; jax {doc['jax']}; median of {n['repeats']} calls "
+            f"of a {n['steps']}-step scan."
+        )
     env = doc["environment"]
     if doc.get("benchmark") == "playground_ppo_train":
         return (
