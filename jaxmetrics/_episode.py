@@ -14,7 +14,7 @@ step index (`EpisodeState.length`, one per env: every step counts, folded or not
 taken in float64 on the host and split so that the float32 products with `t` are exact
 (`_discounted`): no running product to drift (a running product of float32 gammas
 drifts to 7e-5 relative after 10^4 steps of 0.9999), and no rounding of `t ln gamma`
-(`tests/test_discounted.py`).
+(`tests/core/test_discounted.py`).
 """
 
 import dataclasses

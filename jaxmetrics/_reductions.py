@@ -1,7 +1,7 @@
 """The registry of episode reductions: how a term's per-step values become one value per
 episode. Validation and its message (here) and the reductions `success_rate` accepts (with
 what each says about a flag) derive from `REDUCTIONS`. (`_episode` lays its accumulators
-out in its own block order; `tests/test_layout.py` checks it covers the same names.)
+out in its own block order; `tests/test_layering.py` checks it covers the same names.)
 """
 
 import dataclasses

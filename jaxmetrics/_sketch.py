@@ -14,7 +14,7 @@ value's bucket is found by comparing it with those rounded edges (a `log` gives 
 bucket to within one, the comparison settles it), and each representative is the best
 one for its rounded edges, rounded once. The internal accuracy is `a (1 - 2^-10)`, which
 leaves room for those roundings: every representative is within the stated `a` of every
-value of its bucket (`tests/test_quantiles.py` checks the tables). Values beyond the
+value of its bucket (`tests/core/test_quantiles.py` checks the tables). Values beyond the
 magnitude range have no representative: a quantile that falls on them is NaN.
 """
 

@@ -3,7 +3,7 @@
 Tag suffixes (`_tags`), the statistics a metric reports (`_spec.reported`), how a host record
 holds each value (`_report`) and the console's columns derive from `STATISTICS`; nothing
 else lists statistic names. (`_stream.compute` produces the in-graph values under these
-names; `tests/test_layout.py` checks that the two agree.)
+names; `tests/test_layering.py` checks that the two agree.)
 """
 
 from typing import NamedTuple

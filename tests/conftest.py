@@ -38,3 +38,9 @@ def brax_ppo_on_this_jax(monkeypatch):
     monkeypatch.setattr(
         jax, "device_put_replicated", jax._src.api.device_put_replicated, raising=False
     )
+
+
+def pytest_collection_modifyitems(items):
+    # The slow tests (Brax compiles, notebooks, subprocesses) first: the two workers share
+    # them and end on short ones, instead of one worker finishing a long test alone.
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)

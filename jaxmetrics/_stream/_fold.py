@@ -205,7 +205,7 @@ def _batch(values, mask, nonfinite, shift, wt, ema_in, counted):
     pairwise (Chan's rule), so no first pass for a pivot is needed. The CPU reduces a
     row sequentially, and a sequential Welford update over 10^6 float32 values drifts;
     there the moments take two passes around the batch's mean (or `shift`). Both agree
-    to float32 rounding (tests/test_core_numerics.py checks both on one input).
+    to float32 rounding (tests/core/test_core_numerics.py checks both on one input).
     """
     return jax.lax.platform_dependent(
         values,

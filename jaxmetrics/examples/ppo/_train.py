@@ -107,7 +107,7 @@ def train(
     the same config and seeds and carries on: the writers drop the records a killed run
     wrote after it (`purge_step`), `Logger.resume` continues the counters' rates, and the
     run writes exactly the records an uninterrupted run writes (same values, bit for bit
-    on CPU; `tests/test_ppo_resume.py` kills a run and compares).
+    on CPU; `tests/examples/test_ppo_resume.py` kills a run and compares).
 
     Args:
       config: the configuration.

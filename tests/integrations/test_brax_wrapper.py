@@ -629,7 +629,7 @@ warnings.warn_explicit(
 
 
 def test_importing_jaxmetrics_brax_hides_the_two_known_notices_and_nothing_else():
-    root = pathlib.Path(__file__).resolve().parents[1]
+    root = pathlib.Path(__file__).resolve().parents[2]
     out = subprocess.run(
         [sys.executable, "-W", "default", "-c", _QUIET],
         capture_output=True,

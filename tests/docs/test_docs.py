@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from tensorboard.backend.event_processing import event_accumulator
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"
 PAGES = [README] + sorted(p for p in (ROOT / "docs").glob("*.md") if p.name != "benchmarks.md")
 

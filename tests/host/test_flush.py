@@ -19,7 +19,7 @@ from tensorboard.backend.event_processing import event_accumulator as ea
 
 import jaxmetrics as jm
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 class GatedSink:

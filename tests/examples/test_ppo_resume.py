@@ -16,7 +16,7 @@ from tensorboard.backend.event_processing import event_accumulator
 
 from jaxmetrics.examples import ppo
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SPI = 8 * 16  # env steps per iteration: --num-envs x --unroll-length
 ITERATIONS = 12
 SEEDS = ("0", "3")

@@ -23,7 +23,7 @@ from nbclient import NotebookClient
 from nbformat.v4 import new_code_cell
 from tensorboard.backend.event_processing import event_accumulator
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 NOTEBOOKS = ROOT / "notebooks"
 NAMES = ("custom_terms", "quickstart", "training")
 SKIP_TAG = "skip-execution"  # cells the tests leave out (the TensorBoard launch)

@@ -182,7 +182,7 @@ def test_import_jaxmetrics_imports_neither_brax_nor_mujoco():
         "import sys, jaxmetrics as jm; jm.wrap_step, jm.Transition; "
         "print(sorted(m for m in ('brax', 'mujoco') if m in sys.modules))"
     )
-    root = pathlib.Path(__file__).resolve().parents[1]
+    root = pathlib.Path(__file__).resolve().parents[2]
     out = subprocess.run(
         [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root
     )

@@ -177,26 +177,3 @@ def test_wrap_rejects_what_it_cannot_wrap():
         jmp.wrap(wrapper.wrap_for_brax_training(env), metrics)
     with pytest.raises(ValueError, match=r"full_reset=True\) is not supported.*full_reset=False"):
         jmp.wrap(env, metrics, full_reset=True)
-
-
-@pytest.mark.slow
-def test_ppo_demo_trains_a_playground_env_by_name(tmp_path, capsys):
-    from tensorboard.backend.event_processing import event_accumulator
-
-    from jaxmetrics.examples import ppo
-
-    argv = ["--env", ENV, "--steps", "128", "--num-envs", "8", "--unroll-length", "8"]
-    argv += ["--episode-length", "4", "--no-progress", "--log-dir", str(tmp_path)]
-    assert ppo.main(argv) == 0
-    assert f"Trained {ENV} (MuJoCo Playground, MJX) for 128 env steps" in capsys.readouterr().out
-    acc = event_accumulator.EventAccumulator(str(tmp_path / "seed_0"))
-    acc.Reload()
-    scalars = {t: [e.value for e in acc.Scalars(t)] for t in acc.Tags()["scalars"]}
-    assert scalars["Counters/env_steps"] == [64.0, 128.0]
-    # 8 envs x 8 steps per iteration in episodes of 4: 16 episodes per iteration.
-    assert scalars["Episode_Metrics/episode_length"] == [4.0, 4.0]
-    assert scalars["Episode_Metrics/episode_length/count"] == [16.0, 16.0]
-    for c in ("upright", "centered", "small_control", "small_velocity"):
-        (first, second) = scalars[f"Episode_Metrics/reward/{c}"]  # the env's components
-        assert 0.0 <= first <= 4.0 and 0.0 <= second <= 4.0
-    assert all(np.isfinite(scalars["Train/policy_loss"]))

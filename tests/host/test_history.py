@@ -15,7 +15,7 @@ import pytest
 
 import jaxmetrics as jm
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SEEDS, STEPS, NUM_ENVS = 3, 12, 2
 
 

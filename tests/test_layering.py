@@ -1,4 +1,5 @@
-"""The package's layout: one owner per concept, and layers that import only downwards.
+"""The package's layout: one owner per concept, and layers that import only downwards;
+the tests in one folder per layer.
 
 core (the spec, the state and its in-graph functions, tags, registries) <- host (report ->
 Record, the logger) <- writers <- integrations (jaxmetrics.brax <- jaxmetrics.playground,
@@ -131,6 +132,38 @@ def test_no_module_imports_itself_through_others():
     for top in sorted(graph):
         found = circle(top, [])
         assert found is None, " -> ".join(found)
+
+
+TESTS = PACKAGE.parent / "tests"
+# The test folders, each with the package layers its tests pin, from the bottom up; a test
+# imports no module of a layer above its folder's. `import jaxmetrics` (the public names)
+# is allowed everywhere, as is the bench's HLO inspection (`bench._hlo`), which the tests
+# share with the bench.
+TEST_FOLDERS = {"core": 0, "host": 1, "writers": 2, "integrations": 4, "examples": 5, "docs": 5}
+SHARED_WITH_TESTS = {("bench", "_hlo")}
+
+
+def test_tests_are_in_folders_by_layer_and_import_nothing_above_it():
+    assert {p.name for p in TESTS.iterdir() if p.is_dir() and p.name != "__pycache__"} == set(
+        TEST_FOLDERS
+    )
+    assert not [p.name for p in TESTS.glob("test_*.py") if p.name != "test_layering.py"]
+    for folder, top in TEST_FOLDERS.items():
+        for path in (TESTS / folder).glob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                names = []
+                if isinstance(node, ast.Import):
+                    names = [a.name for a in node.names]
+                elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                    names = [f"{node.module}.{a.name}" for a in node.names]
+                for name in names:
+                    parts = name.split(".")
+                    if parts[0] != "jaxmetrics" or len(parts) < 2:
+                        continue
+                    if tuple(parts[1:3]) in SHARED_WITH_TESTS:
+                        continue
+                    if parts[1] in {m for names in LAYERS for m in names}:
+                        assert layer(parts[1]) <= top, f"tests/{folder}/{path.name} imports {name}"
 
 
 def test_progress_fn_builds_records_without_the_jax_core():

@@ -318,3 +318,25 @@ def test_help_names_the_program_it_was_started_as(argv0, prog, monkeypatch, caps
     out = " ".join(capsys.readouterr().out.split())
     assert out.startswith(f"usage: {prog} [-h]")
     assert "to the maximum return (1,000) in under a minute" in out
+
+
+@pytest.mark.slow
+def test_ppo_demo_trains_a_playground_env_by_name(tmp_path, capsys):
+    argv = ["--env", "CartpoleBalance", "--steps", "128", "--num-envs", "8", "--unroll-length", "8"]
+    argv += ["--episode-length", "4", "--no-progress", "--log-dir", str(tmp_path)]
+    assert ppo.main(argv) == 0
+    assert (
+        "Trained CartpoleBalance (MuJoCo Playground, MJX) for 128 env steps"
+        in capsys.readouterr().out
+    )
+    acc = event_accumulator.EventAccumulator(str(tmp_path / "seed_0"))
+    acc.Reload()
+    scalars = {t: [e.value for e in acc.Scalars(t)] for t in acc.Tags()["scalars"]}
+    assert scalars["Counters/env_steps"] == [64.0, 128.0]
+    # 8 envs x 8 steps per iteration in episodes of 4: 16 episodes per iteration.
+    assert scalars["Episode_Metrics/episode_length"] == [4.0, 4.0]
+    assert scalars["Episode_Metrics/episode_length/count"] == [16.0, 16.0]
+    for c in ("upright", "centered", "small_control", "small_velocity"):
+        (first, second) = scalars[f"Episode_Metrics/reward/{c}"]  # the env's components
+        assert 0.0 <= first <= 4.0 and 0.0 <= second <= 4.0
+    assert all(np.isfinite(scalars["Train/policy_loss"]))
