@@ -12,6 +12,7 @@ scanned step of `--kernels` small kernels over `--envs` floats:
 - `cond_pure`: plus a `lax.cond` that is true once per `--period` steps, with a pure branch;
 - `cond_callback`: the same, with an ordered `io_callback` in the branch (what the
   wrappers do);
+- `cond_unordered`: the same with an unordered `io_callback`;
 - `where`: the pure branch's result selected with `jnp.where` instead (no conditional).
 
 Each variant runs in a fresh process per `--xla-flags` setting (XLA reads its flags once).
@@ -27,7 +28,7 @@ import subprocess
 import sys
 import time
 
-VARIANTS = ("bare", "cond_pure", "cond_callback", "where")
+VARIANTS = ("bare", "cond_pure", "cond_callback", "cond_unordered", "where")
 
 
 def measure(kernels: int, envs: int, steps: int, period: int, repeats: int) -> dict[str, float]:
@@ -45,9 +46,9 @@ def measure(kernels: int, envs: int, steps: int, period: int, repeats: int) -> d
     def report(x: jax.Array) -> jax.Array:
         return jnp.sum(x, dtype=jnp.float32)[None]
 
-    def io(x: jax.Array) -> jax.Array:
+    def io(x: jax.Array, ordered: bool) -> jax.Array:
         spec = jax.ShapeDtypeStruct((1,), jnp.float32)
-        return jax.experimental.io_callback(lambda v: np.asarray(v), spec, x, ordered=True)
+        return jax.experimental.io_callback(lambda v: np.asarray(v), spec, x, ordered=ordered)
 
     def body(variant: str):
         def f(carry, _):
@@ -57,8 +58,9 @@ def measure(kernels: int, envs: int, steps: int, period: int, repeats: int) -> d
             when = t % period == 0
             if variant == "cond_pure":
                 acc = jax.lax.cond(when, lambda: acc + report(x), lambda: acc)
-            elif variant == "cond_callback":
-                acc = jax.lax.cond(when, lambda: acc + io(report(x)), lambda: acc)
+            elif variant in ("cond_callback", "cond_unordered"):
+                ordered = variant == "cond_callback"
+                acc = jax.lax.cond(when, lambda: acc + io(report(x), ordered), lambda: acc)
             elif variant == "where":
                 acc = jnp.where(when, acc + report(x), acc)
             return (x, t, acc), None
