@@ -80,11 +80,12 @@ def _cond_sync_table(doc: dict[str, Any]) -> Table:
         "cond_sync",
         f"A step of {n['kernels']} small kernels over {n['envs']:,} floats, us/step",
         ["XLA_FLAGS", *VARIANTS],
+        notes=[doc["note"]] if doc.get("note") else [],
     )
     for row in doc["rows"]:
         t.add(
             f"`{row['xla_flags']}`" if row["xla_flags"] else "(default)",
-            *(row["us_per_step"][v] for v in VARIANTS),
+            *(row["us_per_step"].get(v, "") for v in VARIANTS),
         )
     return t
 
