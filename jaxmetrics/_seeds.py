@@ -23,16 +23,7 @@ CONFIDENCE = 0.95
 """The level of the Student-t interval of the mean across seeds."""
 
 # The summary statistics, in the order a summary record lists them per seed tag.
-STATS = (
-    "seeds_mean",
-    "seeds_std",
-    "seeds_min",
-    "seeds_max",
-    "seeds_iqm",
-    "seeds_ci_lower",
-    "seeds_ci_upper",
-    "seeds_count",
-)
+STATS = tuple(s.name for s in _statistics.STATISTICS if s.source == "seeds")
 
 # What is summarized: a scalar statistic or count of a run's record. Histograms, window
 # contents, rare-event counts (written only once non-zero) and timers are left out.

@@ -44,7 +44,6 @@ import functools
 import json
 import math
 import os
-import platform
 import shutil
 import statistics
 import sys
@@ -67,6 +66,7 @@ from ._brax_train import (
     _version,
     _write,
 )
+from ._brax_train import environment as brax_environment
 
 ENV = "CartpoleBalance"
 WRAPS = ("jaxmetrics", "fold", "playground")
@@ -301,21 +301,11 @@ def run_one(spec: str, args: argparse.Namespace, counter: CompileCounter) -> dic
 
 
 def environment(commit: str | None) -> dict[str, Any]:
-    dev = jax.devices()[0]
+    """`_brax_train.environment` with Playground's, Warp's and XLA's settings."""
     return {
-        "device": getattr(dev, "device_kind", str(dev)),
-        "platform": dev.platform,
-        "device_count": jax.device_count(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "jaxlib": _version("jaxlib"),
-        "brax": _version("brax"),
-        "mujoco": _version("mujoco"),
-        "mujoco_mjx": _version("mujoco-mjx"),
+        **brax_environment(commit),
         "playground": _version("playground"),
         "warp_lang": _version("warp-lang"),
-        "commit": commit,
-        "host": platform.node(),
         "xla_flags": os.environ.get("XLA_FLAGS"),
     }
 
