@@ -288,7 +288,7 @@ def test_timed_rounds_rotate_so_no_variant_always_runs_first():
     assert {t.repeats for t in timings.values()} == {6} and last == {n: n for n in "abc"}
 
 
-DOC = os.path.join(os.path.dirname(__file__), os.pardir, "docs", "benchmarks.md")
+DOC = os.path.join(os.path.dirname(__file__), os.pardir, os.pardir, "docs", "benchmarks.md")
 
 
 def _committed() -> tuple[str, dict]:
