@@ -32,6 +32,11 @@ def test_count_merge_is_exact(a, b):
     assert _count.to_int(jax.jit(_count.merge)(make(a), make(b))) == a + b
 
 
+COUNTER_U = jm.Metrics(counters=["u"])
+# Jitted once for every hypothesis example (a bound method jitted anew retraces).
+INCREMENT_U = jax.jit(COUNTER_U.increment, static_argnums=1)
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     st.lists(
@@ -43,8 +48,7 @@ def test_count_merge_is_exact(a, b):
 def test_increment_signed_and_unsigned_is_exact_against_python_ints(incs):
     # int32 increments (negative ones subtract) and uint32 ones (given here as strings),
     # traced, against Python's integers: -1 once made the counter 4294967295.
-    m = jm.Metrics(counters=["u"])
-    inc = jax.jit(m.increment, static_argnums=1)
+    m, inc = COUNTER_U, INCREMENT_U
     s, want = m.init(0), 0
     for i in incs:
         v = jnp.asarray(int(i), jnp.uint32) if isinstance(i, str) else jnp.asarray(i, jnp.int32)
