@@ -242,10 +242,10 @@ def test_bad_layouts_are_refused_with_the_fix():
         METRICS.update(METRICS.empty(), jnp.zeros((4, 0)), jnp.zeros(0, bool))
     b = METRICS.init(4, sharding=NamedSharding(mesh, P(env)))
     # 2 envs in one shard and 1 env per shard do not form one env axis: one shard.
-    m = METRICS.merge(METRICS.init(2, sharding=NamedSharding(mesh, P())), b)
+    m = jax.jit(METRICS.merge)(METRICS.init(2, sharding=NamedSharding(mesh, P())), b)
     assert m.shard_counts.hi.shape[0] == 1 and m.running.steps.shape == (4, 6)
-    m = METRICS.update(m, jnp.ones((4, 6)), jnp.ones(6, bool))
-    assert METRICS.to_host(METRICS.compute(m))["Counters/episodes"] == 6
+    m = jax.jit(METRICS.update)(m, jnp.ones((4, 6)), jnp.ones(6, bool))
+    assert METRICS.to_host(jax.jit(METRICS.compute)(m))["Counters/episodes"] == 6
     with pytest.raises(
         ValueError, match=r"done must be a bool array of shape \(num_envs,\)=\(4,\)"
     ):
