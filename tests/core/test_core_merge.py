@@ -141,24 +141,26 @@ def test_mixed_merges_of_sharded_and_unsharded_states_follow_the_documented_rule
     rng = np.random.default_rng(3)
     steps = [rng.normal(0, 10, (3, 2)).astype(np.float32) for _ in range(3)]
 
+    update, merge, compute = (jax.jit(f) for f in (m.update, m.merge, m.compute))
+
     def run(state, xs):
         for x in xs:
-            state = m.update(state, jnp.asarray(x), done)
+            state = update(state, jnp.asarray(x), done)
         return state
 
     s1 = run(m.init(2, sharding=env_sharded), steps[0])
     s2 = run(m.init(2), steps[1])
     s3 = run(m.init(2, sharding=env_sharded), steps[2])
-    report = lambda s: m.to_host(m.compute(s))  # noqa: E731
+    report = lambda s: m.to_host(compute(s))  # noqa: E731
     ema = lambda s: report(s)["Episode_Metrics/x/ema"]  # noqa: E731
     e1, e2, e3 = (_ema64(x.reshape(-1), c) for x in steps)  # each worker in env order
 
-    assert ema(m.merge(s1, s2)) == pytest.approx((e1 + e2) / 2, rel=1e-5)
-    assert ema(m.merge(s2, s1)) == pytest.approx((e1 + e2) / 2, rel=1e-5)
+    assert ema(merge(s1, s2)) == pytest.approx((e1 + e2) / 2, rel=1e-5)
+    assert ema(merge(s2, s1)) == pytest.approx((e1 + e2) / 2, rel=1e-5)
     three = (e1 + e2 + e3) / 3
-    assert ema(m.merge(m.merge(s1, s2), s3)) == pytest.approx(three, rel=1e-5)
-    assert ema(m.merge(s1, m.merge(s2, s3))) == pytest.approx(three, rel=1e-5)
-    assert report(m.merge(m.merge(s1, s2), s3))["Episode_Metrics/x/count"] == 18
+    assert ema(merge(merge(s1, s2), s3)) == pytest.approx(three, rel=1e-5)
+    assert ema(merge(s1, merge(s2, s3))) == pytest.approx(three, rel=1e-5)
+    assert report(merge(merge(s1, s2), s3))["Episode_Metrics/x/count"] == 18
     # Two states with history merge sequentially: s3's values after s1's of each step.
     both = np.stack([steps[0], steps[2]], axis=1).reshape(-1)
-    assert ema(m.merge(s1, s3)) == pytest.approx(_ema64(both, c), rel=1e-5)
+    assert ema(merge(s1, s3)) == pytest.approx(_ema64(both, c), rel=1e-5)
