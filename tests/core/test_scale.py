@@ -217,11 +217,12 @@ def test_merge_of_lockstep_workers_equals_one_run_over_both_env_sets():
     run = scan_of_updates(METRICS, sharding, 8)
     a = run(*place(mesh, env, xs[..., :8], dones[:, :8]))
     b = run(*place(mesh, env, xs[..., 8:], dones[:, 8:]))
-    merged = METRICS.merge(a, b)
+    merged = jax.jit(METRICS.merge)(a, b)
     assert merged.shard_counts.hi.shape[0] == 8  # per shard: env steps, episodes
     whole = scan_of_updates(METRICS, None, 16)(xs, dones)
-    got = METRICS.to_host(METRICS.compute(merged))
-    want = METRICS.to_host(METRICS.compute(whole))
+    compute = jax.jit(METRICS.compute)
+    got = METRICS.to_host(compute(merged))
+    want = METRICS.to_host(compute(whole))
     for tag in want:
         np.testing.assert_allclose(
             np.asarray(got[tag], np.float64),
