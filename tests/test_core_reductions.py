@@ -384,9 +384,9 @@ def test_fused_kernel_matches_a_python_loop(rows, batch, size, seed):
     [(2, 3000, 16, 0), (1, 5000, 5, 1), (2, 9000, 16, 2), (2, 9000, 5, 8), (1, 8192, 1, 11)],
 )
 def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
-    # Past `MAX_BLOCK` entries (and under it where the batch is not a power of two) the
-    # kernel loops over blocks of the row: the arrival ranks, the moments and the ring
-    # writes across blocks, against the same loop.
+    # A batch that is not a power of two (and `fold` past `MAX_BLOCK`, which `fits` leaves
+    # to XLA) is read in blocks: the arrival ranks, the moments and the ring writes
+    # across blocks, against the same loop.
     from jaxmetrics._stream import _kernel
 
     assert _kernel.blocking(batch)[1] > 1
@@ -459,14 +459,12 @@ def check_fused_kernel(rows, batch, size, seed):
 
 @pytest.mark.parametrize(
     ("num_envs", "dtype", "fused"),
-    [(3000, "float32", True), (65536, "float32", True), (16, "float32", False)]
-    + [(3000, "float64", False)],
+    [(3000, "float32", True), (4096, "float32", True), (16, "float32", False)]
+    + [(4097, "float32", False), (65536, "float32", False), (3000, "float64", False)],
 )
-def test_fused_kernel_serves_float32_batches_of_any_size_from_its_smallest(
-    monkeypatch, num_envs, dtype, fused
-):
+def test_fused_kernel_serves_float32_batches_of_32_to_4096(monkeypatch, num_envs, dtype, fused):
     # The kernel holds float32 only: a float64 state, and batches under the kernel's
-    # smallest, take the jnp path.
+    # smallest or past its largest, take the jnp path.
     from jaxmetrics import _stream
     from jaxmetrics._stream import _kernel
 
@@ -481,13 +479,13 @@ def test_fused_kernel_serves_float32_batches_of_any_size_from_its_smallest(
     assert ("pallas_call" in str(jaxpr)) == fused
 
 
-@pytest.mark.parametrize(("num_envs", "steps"), [(64, 30), (300, 10), (5000, 10)])
+@pytest.mark.parametrize(("num_envs", "steps"), [(64, 30), (300, 10), (3000, 10)])
 def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch, num_envs, steps):
     # The whole update with the kernel (interpret mode) against the jnp path that CPUs and
     # sharded states take, over a rollout with episodes ending, non-finite values, two
     # EMAs, two window sizes and a histogram: every count, ring slot and histogram bin
     # of the state equal, every reported number to float32 rounding (the batch's sums
-    # are taken in another order). Batches of one block, of two, and past `MAX_BLOCK`.
+    # are taken in another order). Batches of one block and of two.
     from jaxmetrics import _stream
 
     stats = {

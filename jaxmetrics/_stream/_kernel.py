@@ -31,9 +31,11 @@ MAX_BLOCK = 4096
 
 
 def fits(batch: int, dtype) -> bool:
-    """Whether the kernel serves a float32 batch of `batch` entries per row (at least
-    `MIN_BATCH`; any larger size)."""
-    return jnp.dtype(dtype) == jnp.float32 and batch >= MIN_BATCH
+    """Whether the kernel serves a float32 batch of `batch` entries per row: any size
+    from `MIN_BATCH` to `MAX_BLOCK`. `fold` reads longer rows block by block, but one
+    program per row then streams its whole row twice on one multiprocessor, slower than
+    XLA's kernels, which spread the batch over the GPU (docs/benchmarks.md, Scaling)."""
+    return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BLOCK
 
 
 def blocking(batch: int) -> tuple[int, int]:
