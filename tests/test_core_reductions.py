@@ -380,16 +380,16 @@ def test_fused_kernel_matches_a_python_loop(rows, batch, size, seed):
 
 @pytest.mark.parametrize(
     ("rows", "batch", "size", "seed"),
-    # Seeds drawn for masks of every density: 2%, 50%, every entry, 2%, 50%.
-    [(2, 3000, 16, 0), (1, 5000, 5, 1), (2, 9000, 16, 2), (2, 9000, 5, 8), (1, 8192, 1, 11)],
+    # Seeds drawn for masks of every density: 2%, every entry, 50%, 2%, 50%.
+    [(2, 3000, 16, 0), (2, 3000, 5, 1), (1, 4095, 5, 0), (2, 2049, 16, 2), (2, 4000, 1, 0)],
 )
 def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
-    # A batch that is not a power of two (and `fold` past `MAX_BLOCK`, which `fits` leaves
-    # to XLA) is read in blocks: the arrival ranks, the moments and the ring writes
-    # across blocks, against the same loop.
+    # A batch that is not a power of two is read in two blocks, the second overlapping the
+    # first (in all but one entry at 2,049): the arrival ranks, the moments and the
+    # ring writes across blocks, against the same loop.
     from jaxmetrics._stream import _kernel
 
-    assert _kernel.blocking(batch)[1] > 1
+    assert _kernel.blocking(batch)[1] == 2
     check_fused_kernel(rows, batch, size, seed)
 
 

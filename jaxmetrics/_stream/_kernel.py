@@ -6,12 +6,11 @@ row's masked-in values, its non-finite flags and counted_sums summed, how many m
 arrive after each one (`after`), the EMA's weighted sum of the batch, and the newest values
 written to their ring slots (windows, EMA history). XLA does that in five kernels (the
 batch's reduction, the mask packed into words, the later words' counts, the weighted
-deviations, the ring scatter). One Triton program per row does it all: the row is read
-(once where it fits one block of `MAX_BLOCK` entries, else twice, block by block), a
-cumulative sum of its mask gives the ranks, the reductions and the weighted sum follow,
-and the ring slots are written in place (the rings are aliased to the outputs; other rows
-never touch a row's slots). With the full spec a step then takes 6 kernels
-where XLA's path takes 10 (docs/benchmarks.md has the times).
+deviations, the ring scatter). One Triton program per row does it all: the row is loaded
+once (in one or two blocks), a cumulative sum of its mask gives the ranks, the reductions
+and the weighted sum follow, and the ring slots are written in place (the rings are
+aliased to the outputs; other rows never touch a row's slots). With the full spec a step
+then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
@@ -27,21 +26,21 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 MIN_BATCH = 32
-MAX_BLOCK = 4096
+MAX_BATCH = 4096
 
 
 def fits(batch: int, dtype) -> bool:
     """Whether the kernel serves a float32 batch of `batch` entries per row: any size
-    from `MIN_BATCH` to `MAX_BLOCK`. `fold` reads longer rows block by block, but one
-    program per row then streams its whole row twice on one multiprocessor, slower than
-    XLA's kernels, which spread the batch over the GPU (docs/benchmarks.md, Scaling)."""
-    return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BLOCK
+    from `MIN_BATCH` to `MAX_BATCH`. Past that, one program per row (looping over blocks
+    of the row, or a grid over them) is slower than XLA's kernels, which spread the
+    batch over the GPU (docs/benchmarks.md, "Tried and not kept")."""
+    return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
 
 
 def blocking(batch: int) -> tuple[int, int]:
-    """The block (a power of two, at most `MAX_BLOCK` and at most `batch`) and the number
-    of blocks that cover a row of `batch` entries."""
-    block = min(MAX_BLOCK, 1 << (batch.bit_length() - 1))
+    """The block (the largest power of two up to `batch`) and the number of blocks (1 or
+    2) that cover a row of `batch` entries."""
+    block = 1 << (batch.bit_length() - 1)
     return block, -(-batch // block)
 
 
@@ -70,13 +69,12 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     the row's static ints: the EMA coefficient's bits, then each ring's `row` and
     `pos_row`.
 
-    The row is read in blocks (`blocking`), twice: the first pass sums what needs no
-    arrival rank (the count among them, which the ranks need), the second takes the
-    ranks, the moments around the first pass's mean, the EMA's weighted sum and the ring
-    writes. A row of one block is loaded once and kept in registers for both. The last
-    block of a row that is not a whole number of blocks ends at the row's end and masks
-    out the columns the block before it covered: every load stays inside the row (Pallas'
-    interpret mode cannot read past it)."""
+    Triton's blocks are powers of two: a row that is not one is loaded as two blocks
+    (`blocking`), the second ending at the row's end with the entries the first covered
+    masked out, so that no load reaches past the row (Pallas' interpret mode cannot). The
+    blocks stay in registers for two passes: the first sums what needs no arrival rank
+    (the count among them, which the ranks need), the second takes the ranks, the
+    moments around the first pass's mean, the EMA's weighted sum and the ring writes."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     counted_refs, refs = refs[:packs], refs[packs:]
     if ema:
@@ -85,27 +83,23 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     floats, ints, *refs = refs
     block, n_blocks = blocking(batch)
 
-    def load(j, refs):
-        start = j * block
-        if batch % block == 0:
-            return [r[:, pl.ds(start, block)] for r in refs]
-        start = jnp.minimum(start, batch - block)
-        fresh = start + jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) >= j * block
+    def load(j):
+        operands = [m_ref, x_ref, bad_ref, *counted_refs]
+        start = min(j * block, batch - block)
+        if start == j * block:
+            return [r[:, pl.ds(start, block)] for r in operands]
+        fresh = jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) >= j * block - start
         at = (slice(None), pl.ds(start, block))
-        return [plt.load(r.at[at], mask=fresh, other=jnp.zeros((), r.dtype)) for r in refs]
+        return [plt.load(r.at[at], mask=fresh, other=jnp.zeros((), r.dtype)) for r in operands]
 
-    # Both passes read the mask and values; only the first reads the rest.
-    operands = [m_ref, x_ref, bad_ref, *counted_refs]
-    if n_blocks == 1:
-        whole = load(0, operands)
+    loaded = [load(j) for j in range(n_blocks)]
 
     def blocks(body, init, n_refs):
-        """`body(*a block of each of operands[:n_refs], carry)` over the row's blocks."""
-        if n_blocks == 1:
-            return body(*whole[:n_refs], init)
-        return jax.lax.fori_loop(
-            0, n_blocks, lambda j, acc: body(*load(j, operands[:n_refs]), acc), init
-        )
+        """`body(*the first n_refs of a block's mask, values, flags, counted..., carry)`
+        folded over the row's blocks."""
+        for block_values in loaded:
+            init = body(*block_values[:n_refs], init)
+        return init
 
     shift = shift_ref[...]
     row_sum = functools.partial(jnp.sum, axis=1, keepdims=True)
@@ -129,7 +123,7 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     izero = jnp.zeros((1, 1), jnp.int32)
     fzero = jnp.zeros((1, 1), jnp.float32)
     init = (izero, fzero, fzero + jnp.inf, fzero - jnp.inf, fzero, izero, (izero,) * packs)
-    total, xsum, xmin, xmax, dsum, nbad, csums = blocks(first, init, len(operands))
+    total, xsum, xmin, xmax, dsum, nbad, csums = blocks(first, init, 3 + packs)
 
     # The moments take two passes: deviations from `shift`, then from their rounded mean
     # `p`, corrected by the mean of the second deviations (exact for any `p`; accurate
@@ -234,6 +228,8 @@ def fold(
     slowly (Pallas' interpret mode).
     """
     rows, batch = mask.shape
+    if batch > MAX_BATCH:
+        raise ValueError(f"fold: batch of {batch} entries per row; at most {MAX_BATCH}.")
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
     table = [coeff.view(np.int32)]
     for r in rings:
