@@ -7,10 +7,10 @@ arrive after each one (`after`), the EMA's weighted sum of the batch, and the ne
 written to their ring slots (windows, EMA history). XLA does that in five kernels (the
 batch's reduction, the mask packed into words, the later words' counts, the weighted
 deviations, the ring scatter). One Triton program per row does it all: the row is loaded
-once, a cumulative sum of its mask gives the ranks, the reductions and the weighted sum
-follow, and the ring slots are written in place (the rings are aliased to the outputs;
-other rows never touch a row's slots). With the full spec a step then takes 6 kernels
-where XLA's path takes 10 (docs/benchmarks.md has the times).
+once (in one or two blocks), a cumulative sum of its mask gives the ranks, the reductions
+and the weighted sum follow, and the ring slots are written in place (the rings are
+aliased to the outputs; other rows never touch a row's slots). With the full spec a step
+then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
@@ -30,10 +30,18 @@ MAX_BATCH = 4096
 
 
 def fits(batch: int, dtype) -> bool:
-    """Whether the kernel serves a float32 batch of `batch` entries per row (a power of
-    two, one Triton block)."""
-    pow2 = batch & (batch - 1) == 0
-    return jnp.dtype(dtype) == jnp.float32 and pow2 and MIN_BATCH <= batch <= MAX_BATCH
+    """Whether the kernel serves a float32 batch of `batch` entries per row: any size
+    from `MIN_BATCH` to `MAX_BATCH`. Past that, one program per row (looping over blocks
+    of the row, or a grid over them) is slower than XLA's kernels, which spread the
+    batch over the GPU (docs/benchmarks.md, "Tried and not kept")."""
+    return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
+
+
+def blocking(batch: int) -> tuple[int, int]:
+    """The block (the largest power of two up to `batch`) and the number of blocks (1 or
+    2) that cover a row of `batch` entries."""
+    block = 1 << (batch.bit_length() - 1)
+    return block, -(-batch // block)
 
 
 class RingIn(NamedTuple):
@@ -56,72 +64,126 @@ class EmaIn(NamedTuple):
     ema_off: jax.Array
 
 
-def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int):
+def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     """One batch row; `rings` are the ring sizes, `packs` the counted arrays. `table` holds
     the row's static ints: the EMA coefficient's bits, then each ring's `row` and
-    `pos_row`."""
+    `pos_row`.
+
+    Triton's blocks are powers of two: a row that is not one is loaded as two blocks
+    (`blocking`), the second ending at the row's end with the entries the first covered
+    masked out, so that no load reaches past the row (Pallas' interpret mode cannot). The
+    blocks stay in registers for two passes: the first sums what needs no arrival rank
+    (the count among them, which the ranks need), the second takes the ranks, the
+    moments around the first pass's mean, the EMA's weighted sum and the ring writes."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     counted_refs, refs = refs[:packs], refs[packs:]
     if ema:
         w_ref, eoff_ref, *refs = refs
     ring_in, refs = refs[: 2 * len(rings)], refs[2 * len(rings) :]
     floats, ints, *refs = refs
+    block, n_blocks = blocking(batch)
 
-    m = m_ref[...].astype(jnp.int32)  # [1, B]
-    on = m != 0
-    x = x_ref[...]
-    total = jnp.sum(m, axis=1, keepdims=True)
-    after = total - jnp.cumsum(m, axis=1)
+    def load(j):
+        operands = [m_ref, x_ref, bad_ref, *counted_refs]
+        start = min(j * block, batch - block)
+        if start == j * block:
+            return [r[:, pl.ds(start, block)] for r in operands]
+        fresh = jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) >= j * block - start
+        at = (slice(None), pl.ds(start, block))
+        return [plt.load(r.at[at], mask=fresh, other=jnp.zeros((), r.dtype)) for r in operands]
 
-    # The batch's statistics. The row is in registers, so the moments take two passes:
-    # deviations from `shift`, then from their rounded mean `p`, corrected by the mean
-    # of the second deviations (exact for any `p`; accurate for one near the mean, as a
-    # float32 sum of values far from zero gives).
-    zero = jnp.zeros_like(x)
+    loaded = [load(j) for j in range(n_blocks)]
+
+    def blocks(body, init, n_refs):
+        """`body(*the first n_refs of a block's mask, values, flags, counted..., carry)`
+        folded over the row's blocks."""
+        for block_values in loaded:
+            init = body(*block_values[:n_refs], init)
+        return init
+
+    shift = shift_ref[...]
+    row_sum = functools.partial(jnp.sum, axis=1, keepdims=True)
+
+    def first(m, x, bad, *rest):
+        *counted, acc = rest
+        total, xsum, xmin, xmax, dsum, nbad, csums = acc
+        m = m.astype(jnp.int32)
+        on = m != 0
+        zero = jnp.zeros_like(x)
+        return (
+            total + row_sum(m),
+            xsum + row_sum(jnp.where(on, x, zero)),
+            jnp.minimum(xmin, jnp.min(jnp.where(on, x, jnp.inf), axis=1, keepdims=True)),
+            jnp.maximum(xmax, jnp.max(jnp.where(on, x, -jnp.inf), axis=1, keepdims=True)),
+            dsum + row_sum(jnp.where(on, x - shift, zero)),
+            nbad + row_sum(bad),
+            tuple(s + row_sum(t) for s, t in zip(csums, counted)),
+        )
+
+    izero = jnp.zeros((1, 1), jnp.int32)
+    fzero = jnp.zeros((1, 1), jnp.float32)
+    init = (izero, fzero, fzero + jnp.inf, fzero - jnp.inf, fzero, izero, (izero,) * packs)
+    total, xsum, xmin, xmax, dsum, nbad, csums = blocks(first, init, 3 + packs)
+
+    # The moments take two passes: deviations from `shift`, then from their rounded mean
+    # `p`, corrected by the mean of the second deviations (exact for any `p`; accurate
+    # for one near the mean, as a float32 sum of values far from zero gives).
     k = jnp.maximum(total, 1).astype(jnp.float32)
-    d = jnp.where(on, x - shift_ref[...], zero)
-    p = jnp.sum(d, axis=1, keepdims=True) / k
-    e = jnp.where(on, d - p, zero)
-    s1 = jnp.sum(e, axis=1, keepdims=True)
-    floats[:, 0:1] = jnp.sum(jnp.where(on, x, zero), axis=1, keepdims=True)
-    floats[:, 1:2] = jnp.min(jnp.where(on, x, jnp.inf), axis=1, keepdims=True)
-    floats[:, 2:3] = jnp.max(jnp.where(on, x, -jnp.inf), axis=1, keepdims=True)
-    floats[:, 3:4] = p + s1 / k
-    floats[:, 4:5] = jnp.maximum(jnp.sum(e * e, axis=1, keepdims=True) - s1 * s1 / k, 0)
-    ints[:, 0:1] = total
-    ints[:, 1:2] = jnp.sum(bad_ref[...], axis=1, keepdims=True)
-    for j, t in enumerate(counted_refs):
-        ints[:, 2 + j : 3 + j] = jnp.sum(t[...], axis=1, keepdims=True)
-
+    p = dsum / k
     if ema:
         c = jax.lax.bitcast_convert_type(table[:, 0:1], jnp.float32)  # [1, 1]
-        # (1-c)^after; 0^0 = 1 for c = 1, as jnp.power gives.
-        decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(jnp.float32) * jnp.log2(1 - c)))
+        log_keep = jnp.log2(1 - c)
         # The offset and seeding are worked out here from the state's own fields:
         # computed outside, XLA put them in the per-row update's kernel, which then had
         # to run before this one and copied seven fields to keep their old values.
         seeded = w_ref[...] > 0
-        off = jnp.where(seeded, eoff_ref[...], shift_ref[...])
-        first = ~seeded & (c > 0) & (after == total - 1)
-        weight = jnp.where(first, decay, c * decay)
-        dev = jnp.where(on, x - off, 0.0)
-        floats[:, 5:6] = jnp.sum(weight * dev, axis=1, keepdims=True)
-
-    # Only the last `size` arrivals go in, to consecutive slots in arrival order. The
-    # rings are aliased to their outputs: what this row does not write stays. Entries
-    # left out are also pointed past the ring (Pallas' interpret mode writes them back).
-    bits = jax.lax.bitcast_convert_type(x, jnp.uint32)
-    stamp = jnp.broadcast_to(step_ref[...], x.shape)
-    for i, (size, out) in enumerate(zip(rings, refs)):
+        off = jnp.where(seeded, eoff_ref[...], shift)
+        seeding = ~seeded & (c > 0)
+    ring_at = []
+    for i, size in enumerate(rings):
         row = table[:, 1 + 2 * i : 2 + 2 * i]  # [1, 1]
         pos_row = jnp.maximum(table[:, 2 + 2 * i : 3 + 2 * i], 0)
         pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
-        stored = jnp.minimum(total, size)
-        keep = on & (after < size) & (row >= 0)
-        slot = jnp.where(keep, jax.lax.rem(pos + stored - 1 - after, size), size)
-        rows = jnp.broadcast_to(jnp.maximum(row, 0), x.shape)
-        plt.store(out.at[rows, slot, jnp.zeros_like(slot)], bits, mask=keep)
-        plt.store(out.at[rows, slot, jnp.ones_like(slot)], stamp, mask=keep)
+        ring_at.append((row, pos + jnp.minimum(total, size) - 1))
+
+    def second(m, x, acc):
+        before, s1, s2, wsum = acc
+        m = m.astype(jnp.int32)
+        on = m != 0
+        zero = jnp.zeros_like(x)
+        after = total - before - jnp.cumsum(m, axis=1)
+        e = jnp.where(on, x - shift - p, zero)
+        if ema:
+            # (1-c)^after; 0^0 = 1 for c = 1, as jnp.power gives.
+            decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(jnp.float32) * log_keep))
+            weight = jnp.where(seeding & (after == total - 1), decay, c * decay)
+            wsum = wsum + row_sum(weight * jnp.where(on, x - off, zero))
+        # Only the last `size` arrivals go in, to consecutive slots in arrival order. The
+        # rings are aliased to their outputs: what this row does not write stays. Entries
+        # left out are also pointed past the ring (Pallas' interpret mode writes them
+        # back).
+        bits = jax.lax.bitcast_convert_type(x, jnp.uint32)
+        stamp = jnp.broadcast_to(step_ref[...], x.shape)
+        for size, out, (row, newest) in zip(rings, refs, ring_at):
+            keep = on & (after < size) & (row >= 0)
+            slot = jnp.where(keep, jax.lax.rem(newest - after, size), size)
+            rows = jnp.broadcast_to(jnp.maximum(row, 0), x.shape)
+            plt.store(out.at[rows, slot, jnp.zeros_like(slot)], bits, mask=keep)
+            plt.store(out.at[rows, slot, jnp.ones_like(slot)], stamp, mask=keep)
+        return before + row_sum(m), s1 + row_sum(e), s2 + row_sum(e * e), wsum
+
+    _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), 2)
+    floats[:, 0:1] = xsum
+    floats[:, 1:2] = xmin
+    floats[:, 2:3] = xmax
+    floats[:, 3:4] = p + s1 / k
+    floats[:, 4:5] = jnp.maximum(s2 - s1 * s1 / k, 0)
+    if ema:
+        floats[:, 5:6] = wsum
+    ints[:, 0:1] = total
+    ints[:, 1:2] = nbad
+    for j, s in enumerate(csums):
+        ints[:, 2 + j : 3 + j] = s
 
 
 class Batch(NamedTuple):
@@ -166,6 +228,8 @@ def fold(
     slowly (Pallas' interpret mode).
     """
     rows, batch = mask.shape
+    if batch > MAX_BATCH:
+        raise ValueError(f"fold: batch of {batch} entries per row; at most {MAX_BATCH}.")
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
     table = [coeff.view(np.int32)]
     for r in rings:
@@ -210,6 +274,7 @@ def fold(
         ema=ema is not None,
         rings=tuple(r.data.shape[1] for r in rings),
         packs=packs,
+        batch=batch,
     )
     floats, ints, *data = pl.pallas_call(
         kernel,

@@ -364,17 +364,41 @@ def test_arrival_ranks_count_the_later_entries_of_each_row(rows):
 
 
 @settings(max_examples=25, deadline=None)
-@given(st.integers(1, 4), st.integers(5, 8), st.sampled_from([1, 5, 16]), st.integers(0, 2**32 - 1))
-def test_fused_kernel_matches_a_python_loop(rows, log_batch, size, seed):
+@given(
+    st.integers(1, 4),
+    st.sampled_from([32, 64, 256, 40, 100, 300]),
+    st.sampled_from([1, 5, 16]),
+    st.integers(0, 2**32 - 1),
+)
+def test_fused_kernel_matches_a_python_loop(rows, batch, size, seed):
     # The CUDA kernel (`_stream._kernel`), run in Pallas' interpret mode since CI has no GPU,
     # against float64 numpy and a loop over each row in arrival order: the batch's
     # statistics and counted sums, the EMA's weighted sum and a ring written one arrival at a
     # time. Rows cover no EMA (c = 0), c = 1 (0^0 = 1), a seeding row, far-from-zero
-    # values, empty rows, and rows in and out of the ring.
+    # values, empty rows, and rows in and out of the ring; batches of one block and of
+    # two, whose last block overlaps the first.
+    check_fused_kernel(rows, batch, size, seed)
+
+
+@pytest.mark.parametrize(
+    ("rows", "batch", "size", "seed"),
+    # Seeds drawn for masks of every density: 2%, every entry, 50%, 2%, 50%.
+    [(2, 3000, 16, 0), (2, 3000, 5, 1), (1, 4095, 5, 0), (2, 2049, 16, 2), (2, 4000, 1, 0)],
+)
+def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
+    # A batch that is not a power of two is read in two blocks, the second overlapping the
+    # first (in all but one entry at 2,049): the arrival ranks, the moments and the
+    # ring writes across blocks, against the same loop.
+    from jaxmetrics._stream import _kernel
+
+    assert _kernel.blocking(batch)[1] == 2
+    check_fused_kernel(rows, batch, size, seed)
+
+
+def check_fused_kernel(rows, batch, size, seed):
     from jaxmetrics._stream import _kernel
 
     rng = np.random.default_rng(seed)
-    batch = 2**log_batch
     mask = rng.random((rows, batch)) < rng.choice([0.0, 0.02, 0.5, 1.0])
     level = rng.choice([1e4, 1e6])
     values = (level + rng.normal(size=(rows, batch))).astype(np.float32)
@@ -435,12 +459,35 @@ def test_fused_kernel_matches_a_python_loop(rows, log_batch, size, seed):
     np.testing.assert_array_equal(np.asarray(got), want_ring)
 
 
-def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch):
+@pytest.mark.parametrize(
+    ("num_envs", "dtype", "fused"),
+    [(3000, "float32", True), (4096, "float32", True), (16, "float32", False)]
+    + [(4097, "float32", False), (65536, "float32", False), (3000, "float64", False)],
+)
+def test_fused_kernel_serves_float32_batches_of_32_to_4096(monkeypatch, num_envs, dtype, fused):
+    # The kernel holds float32 only: a float64 state, and batches under the kernel's
+    # smallest or past its largest, take the jnp path.
+    from jaxmetrics import _stream
+    from jaxmetrics._stream import _kernel
+
+    assert _kernel.fits(num_envs, dtype) == fused
+    fold = _stream.add_with_counts
+    monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
+    term = jm.Term(lambda x: x, reduce="mean", stats=("mean", jm.ema(0.1), jm.window(5)))
+    with jax.enable_x64(dtype == "float64"):
+        metrics = jm.Metrics(terms={"a": term}, dtype=jnp.dtype(dtype))
+        x, done = jnp.zeros(num_envs, dtype), jnp.zeros(num_envs, bool)
+        jaxpr = jax.make_jaxpr(metrics.update)(metrics.init(num_envs), x, done)
+    assert ("pallas_call" in str(jaxpr)) == fused
+
+
+@pytest.mark.parametrize(("num_envs", "steps"), [(64, 30), (300, 10), (3000, 10)])
+def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch, num_envs, steps):
     # The whole update with the kernel (interpret mode) against the jnp path that CPUs and
     # sharded states take, over a rollout with episodes ending, non-finite values, two
     # EMAs, two window sizes and a histogram: every count, ring slot and histogram bin
     # of the state equal, every reported number to float32 rounding (the batch's sums
-    # are taken in another order).
+    # are taken in another order). Batches of one block and of two.
     from jaxmetrics import _stream
 
     stats = {
@@ -456,21 +503,21 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch):
         }
     )
     rng = np.random.default_rng(7)
-    xs = rng.normal(size=(30, 4, 64)).astype(np.float32)
+    xs = rng.normal(size=(steps, 4, num_envs)).astype(np.float32)
     xs[3, 0, :5], xs[5, 2, 7], xs[8, 1, 9] = np.nan, np.inf, -np.inf
-    dones = rng.random((30, 64)) < 0.3
+    dones = rng.random((steps, num_envs)) < 0.3
 
     def run():
         def body(s, inp):
             return metrics.update(s, inp[0], inp[1]), None
 
         scan = jax.jit(lambda s, x, d: jax.lax.scan(body, s, (x, d))[0])
-        return scan(metrics.init(64), jnp.asarray(xs), jnp.asarray(dones))
+        return scan(metrics.init(num_envs), jnp.asarray(xs), jnp.asarray(dones))
 
     plain = run()
     fold = _stream.add_with_counts
     monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
-    state = metrics.init(64)
+    state = metrics.init(num_envs)
     assert "pallas_call" in str(jax.make_jaxpr(metrics.update)(state, xs[0], dones[0]))
     fused = run()
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(plain), jax.tree.leaves(fused)):
