@@ -194,7 +194,10 @@ def _check_moments(values: np.ndarray, host: dict) -> None:
     ref = values.astype(np.float64)
     assert host["Train/x/count"] == len(ref)
     mean, std = ref.mean(), ref.std()
-    assert abs(host["Train/x"] - mean) <= 1e-6 * abs(mean), (host["Train/x"], mean)
+    # Relative to the mean, or to the spread where the mean is near zero: a compensated
+    # float32 sum is exact to a few ulp of its largest partial sums, not of the mean.
+    tol = 1e-6 * max(abs(mean), std)
+    assert abs(host["Train/x"] - mean) <= tol, (host["Train/x"], mean)
     assert abs(host["Train/x/std"] - std) <= 1e-4 * std, (host["Train/x/std"], std)
 
 
