@@ -3,8 +3,22 @@ bug class these settings catch. Eight CPU devices make the sharding tests real (
 
 import os
 
-import jax
-import pytest
+# The suite is compile-bound and its programs are small: LLVM's optimization passes cost
+# more compile time than they save at run time (HLO-level fusion, which the op-count and
+# collective tests read, is not affected). Subprocesses (scripts, notebooks) inherit it.
+os.environ["XLA_FLAGS"] = " ".join(
+    filter(
+        None,
+        (
+            os.environ.get("XLA_FLAGS"),
+            "--xla_backend_optimization_level=0",
+            "--xla_llvm_disable_expensive_passes=true",
+        ),
+    )
+)
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_num_cpu_devices", 8)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
