@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checkpoint, _count, _episode, _inputs, _rows, _stream, _tags
+from . import _checkpoint, _count, _episode, _fresh, _inputs, _rows, _stream, _tags
 from ._count import Count
 from ._sharding import like, shard_count, state_mesh
 from ._spec import Groups, Logged, MetricSpec, Term, reported
@@ -139,12 +139,13 @@ class Metrics:
         if num_envs == 0 and sharding is None:
             shards = 0  # no shard at all: concatenating it in `merge` changes nothing
         if not isinstance(sharding, jax.sharding.NamedSharding):
-            state = self._fresh(num_envs, shards)
+            state = _fresh.fresh(self._rows, num_envs, shards)
             return state if sharding is None else jax.device_put(state, sharding)
         place = self.state_sharding(sharding)
         # out_shardings places it under Auto axes; device_put types it under Explicit ones.
         return jax.jit(
-            lambda: jax.device_put(self._fresh(num_envs, shards), place), out_shardings=place
+            lambda: jax.device_put(_fresh.fresh(self._rows, num_envs, shards), place),
+            out_shardings=place,
         )()
 
     def state_sharding(self, sharding: jax.sharding.NamedSharding) -> MetricsState:
@@ -173,55 +174,11 @@ class Metrics:
             )
         mesh = sharding.mesh
         env_axes = tuple(sharding.spec)[0] if tuple(sharding.spec) else None
-        return self._per_field(
+        return _fresh.per_field(
+            self._rows,
             jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(None, env_axes)),
             jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(env_axes)),
             jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()),
-        )
-
-    def _fresh(self, num_envs: int, shards: int, ema_history: bool = False) -> MetricsState:
-        """A zero state; `ema_history` keeps each EMA row's newest values even with one
-        shard, for a state that will be merged with other devices' (one per device under
-        `pmap`), as a sharded state keeps them."""
-        has_ep = self._rows.ep_plan is not None
-        n_counters = len(self._rows.stored_counters)
-
-        def per_shard(x: jax.Array) -> jax.Array:
-            return jnp.broadcast_to(x, (shards, *x.shape))
-
-        return MetricsState(
-            running=_episode.init(self._rows.episode_plan, num_envs) if has_ep else None,
-            finished=jax.tree.map(
-                per_shard, _stream.init(self._rows.ep_plan, ema_history or shards > 1)
-            )
-            if has_ep
-            else None,
-            shard_counts=_count.zeros(
-                (shards, _stream.counts_width(self._rows.ep_plan, len(self._rows.shard_counters)))
-            )
-            if has_ep
-            else None,
-            logged=_stream.init(self._rows.lg_plan) if self._rows.lg_plan else None,
-            counters=_count.zeros((n_counters,)) if n_counters else None,
-            spec=self._spec,
-        )
-
-    def _per_field(self, running: Any, per_shard: Any, replicated: Any) -> MetricsState:
-        """A MetricsState-shaped tree of one leaf value per field group."""
-        plan = self._rows.ep_plan
-        has_ep = plan is not None
-
-        def fill(tree: Any, v: Any) -> Any:
-            return jax.tree.map(lambda _: v, tree)
-
-        shapes = jax.eval_shape(lambda: self._fresh(0, 2))
-        return MetricsState(
-            running=fill(shapes.running, running) if has_ep else None,
-            finished=fill(shapes.finished, per_shard) if has_ep else None,
-            shard_counts=fill(shapes.shard_counts, per_shard) if has_ep else None,
-            logged=fill(shapes.logged, replicated) if self._rows.lg_plan else None,
-            counters=fill(shapes.counters, replicated) if shapes.counters is not None else None,
-            spec=self._spec,
         )
 
     @staticmethod

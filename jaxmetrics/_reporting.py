@@ -20,7 +20,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from . import _count
+from . import _count, _fresh
 from ._count import Count
 from ._logger import Logger
 from ._metrics import Metrics
@@ -95,7 +95,7 @@ class Reporter:
         trainer resets its envs under that axis (Brax's SAC `pmap`s its reset unnamed)."""
         if self.axis_name is None:
             return self.metrics.init(num_envs)
-        return self.metrics._fresh(num_envs, 1, ema_history=True)
+        return _fresh.fresh(self.metrics._rows, num_envs, 1, ema_history=True)
 
     def period_calls(self, num_envs: int, steps_per_call: int) -> int:
         """Steps of the batch per period: static, from the batch at trace time."""

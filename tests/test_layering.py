@@ -25,6 +25,7 @@ CORE = {
     "_checkpoint",
     "_count",
     "_episode",
+    "_fresh",
     "_inputs",
     "_metrics",
     "_numerics",
