@@ -356,6 +356,46 @@ def _dir_bytes(path: str) -> int:
     return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
 
 
+def record_progress(
+    progress: list[dict[str, Any]], label: str, t0: float, step: int, m: dict[str, Any]
+) -> None:
+    """Appends a Brax progress call (time since `t0`, training/sps, eval return) to
+    `progress` and prints it under `label`."""
+    now = time.time() - t0
+    sps, ret = m.get("training/sps"), m.get("eval/episode_reward")
+    progress.append(
+        {
+            "step": int(step),
+            "t_s": round(now, 3),
+            "training_sps": None if sps is None else float(sps),
+            "eval_episode_reward": None if ret is None else float(ret),
+        }
+    )
+    print(
+        f"  [{label}] t={now:7.1f}s step={int(step):>10}"
+        + ("" if sps is None else f" training/sps={float(sps):,.0f}")
+        + ("" if ret is None else f" eval_return={float(ret):.1f}"),
+        flush=True,
+    )
+
+
+def closed(logger: Any) -> float:
+    """Closes `logger`; the seconds it took (what is pending is written then)."""
+    t = time.time()
+    logger.close()
+    return round(time.time() - t, 3)
+
+
+def run_times(t_train: float, counter: "CompileCounter", progress: list) -> dict[str, Any]:
+    """A training run's wall time, its compiles and its progress calls."""
+    return {
+        "wall_s": round(t_train, 3),
+        "compiles": len(counter.events),
+        "compile_s": round(sum(d for _, d in counter.events), 2),
+        "progress": progress,
+    }
+
+
 def _steady(
     progress: list[dict[str, Any]],
     compiles: list[tuple[float, float]],
@@ -459,25 +499,9 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
         extra["wrap_env_fn"] = functools.partial(jmb.wrap, metrics=metrics)
 
     def progress_fn(step: int, m: dict[str, Any]) -> None:
-        now = time.time() - t0
-        sps = m.get("training/sps")
-        ret = m.get("eval/episode_reward")
-        progress.append(
-            {
-                "step": int(step),
-                "t_s": round(now, 3),
-                "training_sps": None if sps is None else float(sps),
-                "eval_episode_reward": None if ret is None else float(ret),
-            }
-        )
+        record_progress(progress, f"{variant} run {run}", t0, step, m)
         if trace_at is not None and len(progress) in (trace_at, trace_at + 1):
             _trace_toggle(trace, len(progress) == trace_at, args.trace_dir, variant, run)
-        print(
-            f"  [{variant} run {run}] t={now:7.1f}s step={int(step):>10}"
-            + ("" if sps is None else f" training/sps={float(sps):,.0f}")
-            + ("" if ret is None else f" eval_return={float(ret):.1f}"),
-            flush=True,
-        )
 
     try:
         ppo.train(environment=env, progress_fn=progress_fn, **settings, **extra)
@@ -489,15 +513,10 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
         if trace.get("active"):
             _trace_toggle(trace, False, args.trace_dir, variant, run)
         if logger is not None:
-            t_close0 = time.time()
-            logger.close()
-            result["logger_close_s"] = round(time.time() - t_close0, 3)
+            result["logger_close_s"] = closed(logger)
     result.update(
-        wall_s=round(t_train, 3),
-        compiles=len(counter.events),
-        compile_s=round(sum(d for _, d in counter.events), 2),
+        **run_times(t_train, counter, progress),
         compile_events=[(round(t, 2), round(d, 2)) for t, d in counter.events],
-        progress=progress,
         **_steady(progress, counter.events, [trace_at - 1] if trace.get("dir") else []),
     )
     if trace:

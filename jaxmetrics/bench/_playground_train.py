@@ -65,6 +65,9 @@ from ._brax_train import (
     _steady,
     _version,
     _write,
+    closed,
+    record_progress,
+    run_times,
 )
 from ._brax_train import environment as brax_environment
 
@@ -250,22 +253,7 @@ def run_one(spec: str, args: argparse.Namespace, counter: CompileCounter) -> dic
         extra["wrap_env_fn"] = wrapper.wrap_for_brax_training
 
     def progress_fn(step: int, m: dict[str, Any]) -> None:
-        now = time.time() - t0
-        sps, ret = m.get("training/sps"), m.get("eval/episode_reward")
-        progress.append(
-            {
-                "step": int(step),
-                "t_s": round(now, 3),
-                "training_sps": None if sps is None else float(sps),
-                "eval_episode_reward": None if ret is None else float(ret),
-            }
-        )
-        print(
-            f"  [{spec}] t={now:7.1f}s step={int(step):>10}"
-            + ("" if sps is None else f" training/sps={float(sps):,.0f}")
-            + ("" if ret is None else f" eval_return={float(ret):.1f}"),
-            flush=True,
-        )
+        record_progress(progress, spec, t0, step, m)
 
     counter.start(t0)
     try:
@@ -274,15 +262,10 @@ def run_one(spec: str, args: argparse.Namespace, counter: CompileCounter) -> dic
     finally:
         counter.active = False
         if logger is not None:
-            t_close = time.time()
-            logger.close()
-            result["logger_close_s"] = round(time.time() - t_close, 3)
+            result["logger_close_s"] = closed(logger)
     result.update(
-        wall_s=round(t_train, 3),
-        compiles=len(counter.events),
-        compile_s=round(sum(d for _, d in counter.events), 2),
+        **run_times(t_train, counter, progress),
         first_progress_s=progress[0]["t_s"] if progress else None,
-        progress=progress,
         **_steady(progress, counter.events),
     )
     if writer is not None and logger is not None and logdir is not None:
