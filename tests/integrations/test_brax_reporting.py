@@ -1,6 +1,6 @@
-"""Brax's own `ppo.train` with the reporting wrapper: every period's record reaches
-TensorBoard while training runs, over all envs of both devices Brax pmaps over, equal to a
-float64 unroll of the rewards and dones the training envs produced; the evaluator's
+"""Brax's own `ppo.train` and `sac.train` with the reporting wrapper: every period's record
+reaches TensorBoard while training runs, over all envs of both devices Brax pmaps over, equal
+to a float64 unroll of the rewards and dones the training envs produced; the evaluator's
 episodes are not in it; closing the logger after training writes everything once."""
 
 import functools
@@ -12,6 +12,7 @@ from brax import envs
 from brax.envs.base import Wrapper
 from brax.envs.wrappers import training as brax_training
 from brax.training.agents.ppo import train as brax_ppo
+from brax.training.agents.sac import train as brax_sac
 from jax.experimental import io_callback
 from tensorboard.backend.event_processing import event_accumulator
 
@@ -85,14 +86,40 @@ def _read(logdir) -> dict[str, list[tuple[int, float]]]:
     return {t: [(e.step, e.value) for e in acc.Scalars(t)] for t in acc.Tags()["scalars"]}
 
 
-@pytest.mark.slow
-def test_brax_ppo_train_reports_training_episodes_over_both_devices(tmp_path, brax_ppo_on_this_jax):
-    metrics = jm.Metrics(
+def _metrics() -> jm.Metrics:
+    return jm.Metrics(
         terms={
             "return": jmb.episode_return(stats=("mean", "max", "count")),
             "length": jmb.episode_length(stats=("mean", "count")),
         }
     )
+
+
+def _check_records(logdir, seen: dict[int, list]) -> None:
+    """The records read back equal the float64 reference of the recorded training steps:
+    one per period, in order, at env steps over both devices."""
+    expected = _reference(seen, REPORT_EVERY // NUM_ENVS)
+    tb = _read(logdir)
+    steps = [REPORT_EVERY * (k + 1) for k in range(TIMESTEPS // REPORT_EVERY)]
+    assert [s for s, _ in tb["Counters/env_steps"]] == steps
+    assert [v for _, v in tb["Counters/env_steps"]] == steps
+    counts = [s for s, _ in tb["Episode_Metrics/return/count"]]
+    assert counts == steps  # every period's record, in order, once
+    for k, want in enumerate(expected):
+        n = len(want["returns"])
+        assert n > 0
+        assert tb["Episode_Metrics/return/count"][k][1] == n
+        assert tb["Episode_Metrics/length/count"][k][1] == n
+        assert tb["Episode_Metrics/return"][k][1] == pytest.approx(want["returns"].mean(), rel=1e-5)
+        assert tb["Episode_Metrics/return/max"][k][1] == pytest.approx(
+            want["returns"].max(), rel=1e-5
+        )
+        assert tb["Episode_Metrics/length"][k][1] == pytest.approx(want["lengths"].mean(), rel=1e-6)
+
+
+@pytest.mark.slow
+def test_brax_ppo_train_reports_training_episodes_over_both_devices(tmp_path, brax_ppo_on_this_jax):
+    metrics = _metrics()
     seen: dict[int, list] = {}
     progress: list[tuple[int, set]] = []
     logger = jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
@@ -119,20 +146,32 @@ def test_brax_ppo_train_reports_training_episodes_over_both_devices(tmp_path, br
     assert {len(v) for v in seen.values()} == {TIMESTEPS // NUM_ENVS}
     assert [s for s, keys in progress if "eval/episode_reward" in keys] == [0, TIMESTEPS]
 
-    expected = _reference(seen, REPORT_EVERY // NUM_ENVS)
-    tb = _read(tmp_path)
-    steps = [REPORT_EVERY * (k + 1) for k in range(TIMESTEPS // REPORT_EVERY)]
-    assert [s for s, _ in tb["Counters/env_steps"]] == steps
-    assert [v for _, v in tb["Counters/env_steps"]] == steps
-    counts = [s for s, _ in tb["Episode_Metrics/return/count"]]
-    assert counts == steps  # every period's record, in order, once
-    for k, want in enumerate(expected):
-        n = len(want["returns"])
-        assert n > 0
-        assert tb["Episode_Metrics/return/count"][k][1] == n
-        assert tb["Episode_Metrics/length/count"][k][1] == n
-        assert tb["Episode_Metrics/return"][k][1] == pytest.approx(want["returns"].mean(), rel=1e-5)
-        assert tb["Episode_Metrics/return/max"][k][1] == pytest.approx(
-            want["returns"].max(), rel=1e-5
+    _check_records(tmp_path, seen)
+
+
+@pytest.mark.slow
+def test_brax_sac_train_reports_its_prefill_and_training_steps(tmp_path, brax_ppo_on_this_jax):
+    # SAC steps the env in two pmapped programs (the replay prefill, then the training
+    # epochs) and resets it with an unnamed pmap; the records count both programs' steps.
+    metrics = _metrics()
+    seen: dict[int, list] = {}
+    logger = jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
+    with jmb.default_promotion():
+        brax_sac.train(
+            environment=envs.get_environment("inverted_pendulum", backend="mjx"),
+            num_timesteps=TIMESTEPS,
+            episode_length=50,
+            num_envs=NUM_ENVS,
+            batch_size=16,
+            min_replay_size=128,
+            max_replay_size=TIMESTEPS,
+            num_evals=2,
+            num_eval_envs=4,
+            max_devices_per_host=DEVICES,
+            wrap_env_fn=functools.partial(_wrap, metrics=metrics, logger=logger, seen=seen),
+            seed=0,
         )
-        assert tb["Episode_Metrics/length"][k][1] == pytest.approx(want["lengths"].mean(), rel=1e-6)
+    logger.close()
+    assert sorted(seen) == list(range(DEVICES))
+    assert {len(v) for v in seen.values()} == {TIMESTEPS // NUM_ENVS}
+    _check_records(tmp_path, seen)
