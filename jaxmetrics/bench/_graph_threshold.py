@@ -99,7 +99,9 @@ def main(argv: list[str] | None = None) -> int:
             f"--repeats={a.repeats}",
         ]
         cmd = [sys.executable, "-m", "jaxmetrics.bench._graph_threshold", "--child", *args]
-        done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
+        done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        if done.returncode:
+            raise SystemExit(f"{flags or '(default flags)'}: {done.stderr[-3000:]}")
         rows = json.loads(done.stdout.strip().splitlines()[-1])
         runs.append({"xla_flags": flags, "rows": rows})
         for r in rows:
