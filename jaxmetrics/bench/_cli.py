@@ -9,11 +9,11 @@ from typing import Any
 
 import jax
 
-from . import _flush_cost, _isolated, _render, _rollout, _sharded
+from . import _flush_cost, _isolated, _loaded, _render, _rollout, _sharded
 from ._report import Table, device_label, environment, write_json
 from ._targets import targets
 
-SCENARIOS = ("isolated", "scaling", "groups", "flush", "e2e", "sharded")
+SCENARIOS = ("isolated", "loaded", "scaling", "groups", "flush", "e2e", "sharded")
 
 
 @dataclasses.dataclass
@@ -24,6 +24,10 @@ class Config:
     num_envs: int = 4096
     steps: int = 1000
     repeats: int = 10
+    step_kernels: int = 64
+    loaded_features: tuple[str, ...] = tuple(f for f, _ in _isolated.ABLATION)
+    loaded_terms: tuple[int, ...] = (1, 3)
+    loaded_envs: tuple[int, ...] = (16384,)
     env: str = "ant"
     backend: str = "mjx"
     e2e_envs: int = 4096
@@ -54,6 +58,9 @@ HELP = {
     "num_envs": "envs of the isolated update (scenario 1)",
     "steps": "scan length of the isolated update",
     "repeats": "timed repeats of the isolated update",
+    "step_kernels": "kernels of the synthetic env step of the loaded scenario",
+    "loaded_terms": "numbers of terms of the loaded scenario's full-spec rows (at --num-envs)",
+    "loaded_envs": "num_envs of the loaded scenario's full-spec rows besides --num-envs",
     "env": "Brax env of the end-to-end scenarios",
     "backend": "Brax backend of the end-to-end scenarios",
     "e2e_envs": "envs of the end-to-end rollouts",
@@ -85,6 +92,8 @@ QUICK = dataclasses.replace(
     num_envs=256,
     steps=200,
     repeats=5,
+    loaded_terms=(1,),
+    loaded_envs=(1024,),
     e2e_envs=32,
     e2e_steps=200,
     e2e_repeats=3,
@@ -106,6 +115,16 @@ def _scenario_tables(name: str, c: Config, hlo_dir: str | None, profile: bool) -
     """The tables of scenario `name`, each as soon as it is measured."""
     if name == "isolated":
         yield from _isolated.isolated(c.num_envs, c.steps, c.repeats, hlo_dir, profile)
+    elif name == "loaded":
+        yield _loaded.loaded(
+            c.num_envs,
+            c.loaded_features,
+            c.loaded_terms,
+            c.loaded_envs,
+            c.steps,
+            c.repeats,
+            c.step_kernels,
+        )
     elif name == "scaling":
         yield from _isolated.scaling(
             list(c.scale_envs),
@@ -183,7 +202,11 @@ def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace
     size = p.add_mutually_exclusive_group()
     size.add_argument("--quick", action="store_true", help="small sizes (default on CPU)")
     size.add_argument("--full", action="store_true", help="full sizes (default on GPU/TPU)")
-    lists = {"scenarios": SCENARIOS, "e2e_variants": _rollout.VARIANTS}
+    lists = {
+        "scenarios": SCENARIOS,
+        "loaded_features": Config.loaded_features,
+        "e2e_variants": _rollout.VARIANTS,
+    }
     for name, choices in lists.items():
         p.add_argument(
             "--" + name.replace("_", "-"),

@@ -53,6 +53,8 @@ def tables(doc: dict[str, Any]) -> list[Table]:
         return [_playground_table(doc)]
     if doc.get("benchmark") == "cond_sync":
         return [_cond_sync_table(doc)]
+    if doc.get("benchmark") == "graph_threshold":
+        return [_graph_threshold_table(doc)]
     return [Table.from_dict(n, d) for n, d in doc["scenarios"].items() if n != TARGETS]
 
 
@@ -90,6 +92,42 @@ def _cond_sync_table(doc: dict[str, Any]) -> Table:
     return t
 
 
+def _graph_threshold_table(doc: dict[str, Any]) -> Table:
+    """The isolated rows' us/step, the floor's and ours, per XLA_FLAGS setting."""
+    runs = doc["runs"]
+    tags = [r["xla_flags"].removeprefix("--xla_gpu_") or "default" for r in runs]
+    n = doc["sizes"]
+    t = Table(
+        "graph_threshold",
+        f"Isolated update per XLA_FLAGS setting: {n['steps']}-step scan, us/step",
+        [
+            "variant",
+            "envs",
+            "terms",
+            "ops in loop (floor, ours)",
+            *(f"{c} ({tag})" for tag in tags for c in ("floor", "ours", "x floor")),
+        ],
+        notes=[
+            "Each setting in a fresh process: "
+            + "; ".join(
+                f"{tag}: `XLA_FLAGS={r['xla_flags']}`" if r["xla_flags"] else f"{tag}: none set"
+                for tag, r in zip(tags, runs)
+            )
+            + ". Median of interleaved repeats, the floor and every variant of a size in "
+            "one timing."
+        ],
+    )
+    for k, row in enumerate(runs[0]["rows"]):
+        cells = []
+        for r in runs:
+            other = r["rows"][k]
+            cells += [other["floor_us"], other["us"], other["us"] / other["floor_us"]]
+        t.add(
+            row["label"], row["num_envs"], row["terms"], f"{row['floor_ops']}, {row['ops']}", *cells
+        )
+    return t
+
+
 def _versions(v: Mapping[str, Any]) -> str:
     names = ("jax", "jaxlib", "brax", "mujoco-mjx", "mujoco_mjx", "playground", "warp_lang")
     return ", ".join(f"{n.replace('_', '-')} {v[n]}" for n in names if v.get(n))
@@ -97,6 +135,13 @@ def _versions(v: Mapping[str, Any]) -> str:
 
 def source(name: str, doc: dict[str, Any]) -> str:
     """Where and how a results file was measured, in one paragraph."""
+    if doc.get("benchmark") == "graph_threshold":
+        n = doc["sizes"]
+        tree = f", tree `{doc['commit'][:7]}`" if doc.get("commit") else ""
+        return (
+            f"`{name}`: {doc['device']}{tree}; jax {doc['jax']}; median of {n['repeats']} "
+            f"calls per variant."
+        )
     if doc.get("benchmark") == "cond_sync":
         n = doc["sizes"]
         return (

@@ -25,6 +25,10 @@ ARGS = [
     "--num-envs", str(NUM_ENVS),
     "--steps", str(STEPS),
     "--repeats", "1",
+    "--step-kernels", "4",
+    "--loaded-features", "sum,full",
+    "--loaded-terms", "1",
+    "--loaded-envs", "32",
     "--scale-envs", "16,32",
     "--scale-terms", "1,3",
     "--scale-windows", "4,16",
@@ -53,6 +57,7 @@ ARGS = [
 SCENARIOS = {
     "isolated",
     "kernels",
+    "loaded",
     "scaling_envs",
     "scaling_terms",
     "scaling_window",
@@ -164,6 +169,57 @@ def test_isolated_floor_and_jaxmetrics_match_a_float64_reference(result):
         want, _ = _episode_sums_f64(xs, dones, row)
         np.testing.assert_allclose(check["jaxmetrics_sums"][name], want, rtol=1e-6)
         np.testing.assert_allclose(check["floor_totals"][name], want, rtol=1e-5)
+
+
+@pytest.mark.slow
+def test_loaded_rows_time_each_variant_after_the_env_step(result):
+    doc, _, _ = result
+    t = doc["scenarios"]["loaded"]
+    col = {c: i for i, c in enumerate(t["columns"])}
+    sizes = [(r[col["envs"]], r[col["terms"]]) for r in t["rows"]]
+    assert sizes == [(NUM_ENVS, 10), (NUM_ENVS, 10), (NUM_ENVS, 1), (32, 10)]
+    for r in t["rows"]:
+        step, floor, ours = (r[col[c]] for c in ("step", "step + floor", "step + ours"))
+        assert r[col["floor overhead"]] == pytest.approx(floor - step)
+        assert r[col["our overhead"]] == pytest.approx(ours - step)
+        assert r[col["% of step"]] == pytest.approx(100 * (ours - step) / step)
+    # The env step's values feed the update: the same episodes as the random dones.
+    _, dones = _isolated.inputs(NUM_ENVS, STEPS)
+    check = t["data"]["check"]
+    assert check["episodes"] == int(np.asarray(dones).sum()) > 0
+    assert check["counts_equal"] and check["max_rel_diff_sum"] < 1e-5
+    assert t["data"]["step_kernels"] == 4
+
+
+def test_env_step_values_are_in_the_unit_interval_and_follow_the_action():
+    import jax.numpy as jnp
+
+    from jaxmetrics.bench import _loaded
+
+    x = _loaded.env_init(8)
+    action = jnp.linspace(0.0, 1.0, 80, dtype=jnp.float32).reshape(10, 8)
+    a = np.asarray(_loaded.env_step(x, action, 3))
+    b = np.asarray(_loaded.env_step(x, action * 0.5, 3))
+    assert a.shape == (_loaded.FEATURES, 8) and a.dtype == np.float32
+    assert (a >= 0).all() and (a <= 1).all()
+    # One unfused kernel by hand, float64: 0.5 + 0.5 sin(3 x + i) from the action's rows.
+    x64 = np.full((_loaded.FEATURES, 8), 0.5)
+    x64[:10] += np.asarray(action, np.float64)
+    for i in range(3):
+        x64 = 0.5 + 0.5 * np.sin(3.0 * x64 + i)
+    np.testing.assert_allclose(a, x64, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(a[:10], b[:10])
+
+
+def test_graph_threshold_rows_are_the_loaded_rows_in_one_process():
+    from jaxmetrics.bench import _graph_threshold, _loaded
+
+    got = _graph_threshold.measure(16, ["sum"], [1], [8], steps=5, repeats=1)
+    want = _loaded.rows(16, ["sum"], [1], [8])
+    assert [(r["label"], r["num_envs"], r["terms"]) for r in got] == [
+        (w.label, w.num_envs, w.terms) for w in want
+    ]
+    assert all(r["us"] > 0 and r["floor_us"] > 0 and r["ops"] > 0 for r in got)
 
 
 @pytest.mark.slow
