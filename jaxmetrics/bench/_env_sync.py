@@ -19,11 +19,14 @@ once): `impl` is `jax`, `warp` (MJX's Warp physics in its default graph mode on 
 `GraphMode.WARP`: Warp captures and launches its own CUDA graph in each FFI call) or
 `warp_jaxgraph` (`GraphMode.JAX`: XLA may capture Warp's FFI calls in its command buffers);
 `variants` comma-separated, empty for all. Per variant: median ms per step over `--repeats`
-calls, compile seconds, what the compiled program holds (`hlo_summary`: command buffers,
-conditionals and custom calls, and which of them lie inside a command buffer), and with
-`--profile` one call under `jax.profiler.trace` counted per step (`trace_counts`): device
-events per stream, the CUDA driver/runtime calls of the host (kernel and graph launches,
-device-to-host copies, synchronizations) and the GPU's busy time.
+calls, compile seconds, the conditionals, loops and custom calls of the compiled program
+(`hlo_summary`), and with `--profile` one call under `jax.profiler.trace` counted per step
+(`trace_counts`): CUDA graph launches from the host (XLA's command buffers and Warp's own
+graphs; the profiler records no single-kernel launches of the host), device-to-host copies
+on the GPU's streams (a conditional that XLA runs from the host copies its predicate there
+and waits for it), device events per stream (a stream's name lists the kinds of work it
+ran), the host's CUDA calls by name, each line's most frequent events, and the GPU's busy
+time.
 
 `python -m jaxmetrics.bench._env_sync --case "warp;;" --case "jax;;" --profile --out F.json`
 """
@@ -64,48 +67,20 @@ def parse_case(spec: str) -> tuple[str, tuple[str, ...], str]:
 # --------------------------------------------------------------------------- the compiled HLO
 
 
-def hlo_summary(text: str) -> dict[str, Any]:
-    """Command buffers, conditionals and custom calls of an optimized module, and how many
-    of the latter lie inside a command buffer (XLA replays a command buffer as one CUDA
-    graph; what lies outside runs as thunks launched from the host one by one)."""
-    from ._hlo import _CALLS, _opcode, _split_computations
+def hlo_summary(text: str) -> dict[str, int]:
+    """Conditionals, loops and custom calls (by target) of an optimized module. Which of
+    them XLA runs inside a command buffer is decided after the HLO, on its thunks: the
+    trace shows it (`command_buffer_*` thunks, one `cuGraphLaunch` each per execution)."""
+    from ._hlo import _opcode, _split_computations
 
     comps, _ = _split_computations(text)
-    callees: dict[str, list[str]] = {}
-    for name, instrs in comps.items():
-        callees[name] = [
-            c.strip()
-            for instr in instrs
-            for m in _CALLS.finditer(instr)
-            for c in m.group(1).replace("%", "").split(",")
-        ] + [
-            m.group(1)
-            for instr in instrs
-            for m in re.finditer(r"\b(?:body|condition)=%?([\w.\-]+)", instr)
-        ]
-
-    inside: set[str] = set()
-    todo = [n for n in comps if n.startswith("command_buffer")]
-    while todo:
-        n = todo.pop()
-        if n in inside or n not in comps:
-            continue
-        inside.add(n)
-        todo.extend(callees.get(n, []))
     count: collections.Counter[str] = collections.Counter()
-    for name, instrs in comps.items():
-        where = "in_command_buffer" if name in inside else "outside"
+    for instrs in comps.values():
         for instr in instrs:
             op = _opcode(instr)
             if op in ("conditional", "while", "custom-call"):
                 target = re.search(r'custom_call_target="([^"]+)"', instr)
-                label = op if target is None else f"custom-call:{target.group(1)}"
-                count[f"{label}/{where}"] += 1
-            elif op == "call" and any(
-                c.startswith("command_buffer") for m in _CALLS.finditer(instr)
-                for c in m.group(1).replace("%", "").split(",")
-            ):  # fmt: skip
-                count["command_buffer_calls"] += 1
+                count[op if target is None else f"custom-call:{target.group(1)}"] += 1
     return dict(sorted(count.items()))
 
 
@@ -121,7 +96,7 @@ def trace_counts(path: str, steps: int) -> dict[str, Any]:
     device: collections.Counter[str] = collections.Counter()
     api: collections.Counter[str] = collections.Counter()
     top: dict[str, collections.Counter[str]] = {}
-    busy_ns = 0
+    busy_ns = d2h = 0
     lo, hi = float("inf"), 0.0
     for p in data.planes:
         for ln in p.lines:
@@ -130,6 +105,7 @@ def trace_counts(path: str, steps: int) -> dict[str, Any]:
             top[key] = names
             if p.name.startswith("/device:") and ln.name.startswith("Stream"):
                 device[ln.name] += sum(names.values())
+                d2h += names["MemcpyD2H"]
                 for e in ln.events:
                     busy_ns += e.duration_ns
                     lo, hi = min(lo, e.start_ns), max(hi, e.start_ns + e.duration_ns)
@@ -143,6 +119,10 @@ def trace_counts(path: str, steps: int) -> dict[str, Any]:
 
     span = hi - lo if hi > lo else 0.0
     return {
+        "graph_launches_per_step": round(
+            sum(n for k, n in api.items() if k.startswith("cuGraphLaunch")) / steps, 3
+        ),
+        "memcpy_d2h_per_step": round(d2h / steps, 3),
         "device_events_per_step": per_step(device),
         "host_api_calls_per_step": per_step(api),
         "gpu_busy_us_per_step": round(busy_ns / 1e3 / steps, 3),
