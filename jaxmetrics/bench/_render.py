@@ -55,6 +55,8 @@ def tables(doc: dict[str, Any]) -> list[Table]:
         return [_cond_sync_table(doc)]
     if doc.get("benchmark") == "graph_threshold":
         return [_graph_threshold_table(doc)]
+    if doc.get("benchmark") == "env_sync":
+        return [_env_sync_table(doc)]
     return [Table.from_dict(n, d) for n, d in doc["scenarios"].items() if n != TARGETS]
 
 
@@ -128,6 +130,57 @@ def _graph_threshold_table(doc: dict[str, Any]) -> Table:
     return t
 
 
+def _env_sync_table(doc: dict[str, Any]) -> Table:
+    """Per case and variant: ms per step against Playground's wrap of the same case, and
+    what one profiled call ran per step."""
+    n = doc["sizes"]
+    t = Table(
+        "env_sync",
+        f"Playground's CartpoleBalance, {n['envs']:,} envs, pmapped {n['steps']}-step scan, "
+        "ms/step",
+        [
+            "physics",
+            "XLA_FLAGS",
+            "variant",
+            "ms/step",
+            "vs playground %",
+            "graph launches",
+            "device events",
+            "D2H copy on the stream",
+            "GPU busy us",
+        ],  # fmt: skip
+        notes=[
+            "Per step of the profiled call: graph launches: CUDA graphs the host launched "
+            "(XLA's command buffers, Warp's own graph); device events: kernels, memsets "
+            "and copies the GPU ran; D2H copy: whether a device-to-host copy ran on the "
+            "stream (a conditional run from the host copies its predicate there each step); "
+            "GPU busy: the device events' summed time.",
+            *([doc["note"]] if doc.get("note") else []),
+        ],
+    )
+    for case in doc["cases"]:
+        rows = {r["variant"]: r for r in case["rows"]}
+        base = rows.get("playground")
+        flags = f"`{case['xla_flags']}`" if case["xla_flags"] else "(default)"
+        if "error" in case and not rows:
+            t.add(case["impl"], flags, "failed: " + case["error"], *[""] * 6)
+        for v, r in rows.items():
+            tc = r["trace_counts"]
+            t.add(
+                case["impl"],
+                flags,
+                v,
+                round(r["ms_per_step"], 3),
+                "" if base is None or v == "playground"
+                else round(100 * (r["ms_per_step"] / base["ms_per_step"] - 1), 1),
+                tc["graph_launches_per_step"],
+                round(sum(tc["device_events_per_step"].values()), 1),
+                "yes" if any("MemcpyD2H" in k for k in tc["device_events_per_step"]) else "no",
+                round(tc["gpu_busy_us_per_step"]),
+            )  # fmt: skip
+    return t
+
+
 def _versions(v: Mapping[str, Any]) -> str:
     names = ("jax", "jaxlib", "brax", "mujoco-mjx", "mujoco_mjx", "playground", "warp_lang")
     return ", ".join(f"{n.replace('_', '-')} {v[n]}" for n in names if v.get(n))
@@ -147,6 +200,13 @@ def source(name: str, doc: dict[str, Any]) -> str:
         return (
             f"`{name}`: {doc['device']}; jax {doc['jax']}; median of {n['repeats']} calls "
             f"of a {n['steps']}-step scan."
+        )
+    if doc.get("benchmark") == "env_sync":
+        e, n = doc["environment"], doc["sizes"]
+        return (
+            f"`{name}`: {e['device']}; jax {e['jax']}, mujoco-mjx {e['mujoco_mjx']}, playground "
+            f"{e['playground']}, warp-lang {e['warp_lang']}; median of {n['repeats']} calls per "
+            "variant, each case (physics, XLA_FLAGS) in a fresh process."
         )
     env = doc["environment"]
     if doc.get("benchmark") == "playground_ppo_train":

@@ -473,3 +473,18 @@ def test_ppo_train_variant_names():
     assert parse_variant("report_full_mem") == ("report", "full", None, "memory")
     with pytest.raises(ValueError, match="unknown variant 'report_full_sometimes'"):
         parse_variant("report_full_sometimes")
+
+
+def test_env_sync_variants_report_only_where_they_call_back():
+    # Two tiny variants of the rollout bench on Playground's JAX physics: the reporting
+    # wrapper writes one record per call (the period is the call), a pure cond none.
+    import jaxmetrics.playground as jmp
+    from jaxmetrics.bench import _env_sync
+
+    with jmp.default_promotion():  # the suite runs strict (conftest); Playground does not
+        rows = _env_sync.measure("jax", ["report", "cond_pure"], 4, 3, 1, profile=False)
+    assert [(r["variant"], r["records"]) for r in rows] == [("report", 2), ("cond_pure", 0)]
+    assert rows[0]["hlo_summary"]["conditional"] > rows[1]["hlo_summary"]["conditional"] >= 1
+    assert rows[0]["hlo_summary"]["custom-call:xla_ffi_python_cpu_callback"] == 1
+    with pytest.raises(ValueError, match="bad case"):
+        _env_sync.parse_case("warp;report,nope;")
