@@ -15,11 +15,18 @@ host memory, `seq` before and after the arrays, and then
   counted).
 
 On the CPU the handler copies and delivers at once. The bench times a scanned step of
-`--kernels` small kernels (as `_cond_sync`) with `bare`, `cond_pure`, `cond_io_callback`
-(an ordered `io_callback` in the branch, as the wrappers do) and the `GraphCallback`
-variants, true once per `--period` steps, each in a fresh process; it checks that every
-callback variant delivered exactly the reports of each call, in order, and with
-`--profile` counts per step the graph launches and device-to-host copies of one call.
+`--kernels` small kernels (as `_cond_sync`), each variant in a fresh process:
+
+- `bare`: the step alone; `cond_pure`: plus a `lax.cond`, true once per `--period` steps,
+  with a pure branch; `cond_io_callback`: an ordered `io_callback` in that branch (what
+  the reporting wrappers do);
+- `cond_graph_*`: a `GraphCallback` in that branch: `poll`, `poll_pure` (results used
+  instead of `has_side_effect`), `poll_ring` (a ring of `RING` slots), `host_func`;
+- `every_graph_*`: a `GraphCallback` on every step, outside any conditional.
+
+It checks that every callback variant delivered exactly the reports of each call, in order
+(`seq` and the step's number exact, the floats against a plain scan's), and with `--profile`
+counts per step the graph launches and device-to-host copies of one call.
 
 `python -m jaxmetrics.bench._graph_callback --profile --out F.json`
 """
@@ -50,9 +57,13 @@ VARIANTS = (
     "cond_io_callback",
     "cond_graph_poll",
     "cond_graph_poll_pure",
+    "cond_graph_poll_ring",
     "cond_graph_host_func",
+    "every_graph_poll",
+    "every_graph_poll_ring",
     "every_graph_host_func",
 )
+RING = 8  # slots of the `_ring` variants
 _WORD = 4  # bytes of `seq`, an int32
 
 # --------------------------------------------------------------------------- XLA's FFI C API
@@ -312,16 +323,22 @@ class GraphCallback:
     `has_side_effect=False` must use.
 
     Args:
-      consumer: called on the consumer thread with `(seq: int, arrays: tuple[np.ndarray])`.
+      consumer: called on the consumer thread with `(seq: int, arrays: tuple[np.ndarray])`,
+        in the order of `seq`.
       shapes: the arrays' `jax.ShapeDtypeStruct`s, fixed (the pinned staging area is
         allocated when the callback is built, as a stream being captured may not allocate).
       mode: `Mode.HOST_FUNC` or `Mode.POLL` (see the module's docstring).
+      slots: `POLL` mode: a ring of this many staging slots, report `seq` into slot
+        `seq % slots` (a `lax.switch` over one custom call per slot), so the poll thread may
+        fall `slots - 1` reports behind before one is lost.
       has_side_effect: whether the custom call is kept when its results are unused.
       poll_interval_s: the poll thread's sleep between looks.
 
-    `seq` is an int32 scalar, distinct and nonzero per report (in `POLL` mode the thread
-    tells a new report by it). `drain()`, after the device has finished, waits until every
-    report has reached `consumer`; `close()` stops the threads.
+    `seq` is an int32 scalar that starts at 1 and grows by 1 per report (the poll thread
+    tells new reports and lost ones by it). `drain()`, after the device has finished, waits
+    until every report has reached `consumer`; `reset_sequence()` before work whose `seq`
+    starts again; `close()` stops the threads. `lost` counts the reports overwritten before
+    the poll thread saw them.
     """
 
     def __init__(
@@ -329,13 +346,16 @@ class GraphCallback:
         consumer: Callable[[int, tuple[np.ndarray, ...]], None],
         shapes: Sequence[Any],
         mode: Mode = Mode.POLL,
+        slots: int = 1,
         has_side_effect: bool = True,
         poll_interval_s: float = 1e-4,
     ) -> None:
         import jax
 
+        if slots < 1 or (slots > 1 and mode is not Mode.POLL):
+            raise ValueError("GraphCallback: `slots` > 1 needs Mode.POLL.")
         _register()
-        self.mode, self.has_side_effect = mode, has_side_effect
+        self.mode, self.slots, self.has_side_effect = mode, slots, has_side_effect
         self.poll_interval_s = poll_interval_s
         self._consumer = consumer
         self._shapes = tuple(jax.ShapeDtypeStruct(s.shape, s.dtype) for s in shapes)
@@ -343,14 +363,13 @@ class GraphCallback:
         self.nbytes = _WORD + sum(self._sizes) + _WORD
         self.lost = 0
         self._pinned: dict[tuple[str, int], int] = {}
-        self._cpu_buffer = ctypes.create_string_buffer(self.nbytes)
+        self._cpu_buffer = ctypes.create_string_buffer(self.nbytes * slots)
         self._pinned["cpu", 0] = ctypes.addressof(self._cpu_buffer)
         cuda = _cuda()
         if cuda is not None:
             for d in jax.local_devices(backend="gpu"):
-                self._pinned["cuda", d.local_hardware_id] = cuda.pinned(
-                    d.local_hardware_id, self.nbytes
-                )
+                ordinal = d.local_hardware_id
+                self._pinned["cuda", ordinal] = cuda.pinned(ordinal, self.nbytes * slots)
         self._queue: queue.Queue[bytes | None] = queue.Queue()
         self._stop = threading.Event()
         self._seen: dict[int, int] = {}
@@ -378,7 +397,14 @@ class GraphCallback:
             has_side_effect=self.has_side_effect,
             input_output_aliases={i: i for i in range(len(arrays) + 1)},
         )
-        return tuple(call(seq, *arrays, site=np.int64(self.site)))
+
+        def into(slot: int) -> Callable[..., tuple[Any, ...]]:
+            return lambda *ops: tuple(call(*ops, site=np.int64(self.site), slot=np.int64(slot)))
+
+        if self.slots == 1:
+            return into(0)(seq, *arrays)
+        index = jax.lax.rem(seq, jnp.int32(self.slots))
+        return jax.lax.switch(index, [into(i) for i in range(self.slots)], seq, *arrays)
 
     # ----------------------------------------------------------------- the host side
 
@@ -398,45 +424,54 @@ class GraphCallback:
                 self._queue.task_done()
         self._queue.task_done()
 
-    def _take(self, key: tuple[str, int]) -> None:
-        """POLL mode: the report in `key`'s pinned slot, if new and whole."""
-        ptr = self._pinned[key]
-        end = ctypes.c_int32.from_address(ptr + self.nbytes - _WORD).value
-        if end == 0 or end == self._seen.get(key[1]):
-            return
-        raw = ctypes.string_at(ptr, self.nbytes)
-        begin = int(np.frombuffer(raw[:_WORD], np.int32)[0])
-        if begin != end or ctypes.c_int32.from_address(ptr).value != end:
-            return  # being overwritten; look again
-        last = self._seen.get(key[1])
-        if last is not None and end != last + 1:
-            self.lost += abs(end - last - 1)
-        self._seen[key[1]] = end
-        self._deliver(raw[: self.nbytes - _WORD])
+    def _take(self, ordinal: int) -> None:
+        """POLL mode: the new whole reports in the device's ring, in order of `seq`. The
+        device writes a slot's leading `seq`, its arrays, then its trailing `seq`, in stream
+        order; a slot whose two words differ is being rewritten with its leading `seq`, and
+        the reports from there on wait for the next look."""
+        base, last = self._pinned["cuda", ordinal], self._seen.get(ordinal, 0)
+        whole, torn = [], []
+        for i in range(self.slots):
+            ptr = base + i * self.nbytes
+            end = ctypes.c_int32.from_address(ptr + self.nbytes - _WORD).value
+            raw = ctypes.string_at(ptr, self.nbytes)
+            begin = int(np.frombuffer(raw[:_WORD], np.int32)[0])
+            if begin != end or ctypes.c_int32.from_address(ptr).value != end:
+                torn.append(min(begin, ctypes.c_int32.from_address(ptr).value))
+            elif end > last:
+                whole.append((end, raw[: self.nbytes - _WORD]))
+        for seq, raw in sorted(whole):
+            if torn and seq > min(torn):
+                break
+            self.lost += seq - last - 1
+            self._deliver(raw)
+            last = seq
+        self._seen[ordinal] = last
+
+    def _ordinals(self) -> list[int]:
+        return [k[1] for k in self._pinned if k[0] == "cuda"]
 
     def _poll(self) -> None:
-        keys = [k for k in self._pinned if k[0] == "cuda"]
         while not self._stop.is_set():
             with self._lock:
-                for key in keys:
-                    self._take(key)
+                for ordinal in self._ordinals():
+                    self._take(ordinal)
             time.sleep(self.poll_interval_s)
 
     def drain(self) -> None:
         """Every report of the finished device work handed to the consumer."""
         if self.mode is Mode.POLL:
             with self._lock:
-                for key in self._pinned:
-                    if key[0] == "cuda":
-                        self._take(key)
+                for ordinal in self._ordinals():
+                    self._take(ordinal)
         self._queue.join()
 
     def reset_sequence(self) -> None:
-        """Forget the last `seq` seen (before a call whose `seq` starts again)."""
+        """Forget the last `seq` seen (before work whose `seq` starts at 1 again)."""
         with self._lock:
             self._seen.clear()
             for ptr in self._pinned.values():
-                ctypes.memset(ptr, 0, self.nbytes)
+                ctypes.memset(ptr, 0, self.nbytes * self.slots)
 
     def close(self) -> None:
         self._stop.set()
@@ -455,18 +490,19 @@ class GraphCallback:
         pieces = [(buffers[0].data, _WORD)]
         pieces += [(b.data, n) for b, n in zip(buffers[1:], self._sizes, strict=True)]
         pieces.append((buffers[0].data, _WORD))
+        offset = _attr_int(frame.attrs, "slot") * self.nbytes
         if platform_ == "cpu":
-            dst = self._pinned["cpu", 0]
+            dst = start = self._pinned["cpu", 0] + offset
             for src, n in pieces:
                 ctypes.memmove(dst, src, n)
                 dst += n
-            self._deliver(ctypes.string_at(self._pinned["cpu", 0], self.nbytes - _WORD))
+            self._deliver(ctypes.string_at(start, self.nbytes - _WORD))
             return
         cuda = _cuda()
         assert cuda is not None
         ordinal = _context_get(frame, "DeviceOrdinal_Get")
         stream = _context_get(frame, "Stream_Get")
-        dst = self._pinned["cuda", ordinal]
+        dst = self._pinned["cuda", ordinal] + offset
         with cuda.current(ordinal):
             for src, n in pieces:
                 cuda.copy_to_host(dst, src, n, stream)
@@ -581,7 +617,9 @@ def measure(
     cb = None
     if "graph" in variant:
         mode = Mode.HOST_FUNC if variant.endswith("host_func") else Mode.POLL
-        cb = GraphCallback(receive, shapes, mode, has_side_effect=not variant.endswith("_pure"))
+        slots = RING if variant.endswith("_ring") else 1
+        pure = variant.endswith("_pure")
+        cb = GraphCallback(receive, shapes, mode, slots, has_side_effect=not pure)
 
     def step(x: Any) -> Any:
         # The barriers keep each operation a kernel of its own, as a launch-bound env is.
