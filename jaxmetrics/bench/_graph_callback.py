@@ -752,7 +752,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--variants", default=",".join(VARIANTS))
     p.add_argument("--kernels", type=int, default=100)
     p.add_argument("--envs", type=int, default=2048)
-    p.add_argument("--steps", type=int, default=2000)
+    p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--period", type=int, default=100)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--profile", action="store_true")
