@@ -26,10 +26,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 MIN_BATCH = 32
-# Rows up to MAX_BATCH entries: one program per row. Longer ones: one per chunk of CHUNK
-# entries of a row, whose partial statistics `fold` combines.
 MAX_BATCH = 4096
-CHUNK = 4096
 
 
 def fits(batch: int, dtype) -> bool:
@@ -41,10 +38,13 @@ def fits(batch: int, dtype) -> bool:
 
 
 def chunking(batch: int) -> tuple[int, int]:
-    """The entries one program folds and the number of programs per row of `batch`."""
+    """The entries one program folds and the number of programs per row of `batch`: a
+    row up to `MAX_BATCH` entries in one, a longer one in chunks of 1,024 entries (2,048
+    past 16,384) whose partial statistics `fold` combines."""
     if batch <= MAX_BATCH:
         return batch, 1
-    return CHUNK, -(-batch // CHUNK)
+    chunk = 1024 if batch <= 16384 else 2048
+    return chunk, -(-batch // chunk)
 
 
 def blocking(batch: int) -> tuple[int, int]:
@@ -74,10 +74,13 @@ class EmaIn(NamedTuple):
     ema_off: jax.Array
 
 
-def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
-    """One chunk of a batch row (`chunking`); `rings` are the ring sizes, `packs` the
-    counted arrays. `table` holds the row's static ints: the EMA coefficient's bits, then
-    each ring's `row` and `pos_row`; `counts` the row's masked-in entries per chunk.
+def _kernel(
+    *refs, ema: bool, rings: tuple[int, ...], packs: int, counted: int, rows: int, batch: int
+):
+    """One chunk of a batch row (`chunking`) of `rows`; `rings` are the ring sizes,
+    `packs` the counted arrays (holding `counted` rows in all). `table` holds the row's
+    static ints: the EMA coefficient's bits, then each ring's `row` and `pos_row`;
+    `counts` (past one chunk) the row's masked-in entries per chunk.
 
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
     blocks (`blocking`), the last ending at the row's end with the entries already
@@ -86,7 +89,9 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     arrival rank (the count among them, which the ranks need), the second takes the
     ranks, the moments around the first pass's mean, the EMA's weighted sum and the ring
     writes. A chunk's ranks add the row's entries in later chunks (from `counts`), and
-    its EMA weights and ring slots follow from those global ranks."""
+    its EMA weights and ring slots follow from those global ranks. Its mean deviation is
+    also written off a pivot that every chunk of the row shares (the row's first value),
+    so that the chunks' means combine without the rounding of means far from zero."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     chunk, n_chunks = chunking(batch)
     if n_chunks > 1:
@@ -218,12 +223,15 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     if ema:
         floats[:, 5:6] = wsum
     if n_chunks > 1:
-        floats[:, 6:7] = p
-        floats[:, 7:8] = s1 / k
+        first = x_ref[:, 0:1] - shift
+        pivot = jnp.where(jnp.isfinite(first), first, 0)
+        floats[:, 6:7] = (p - pivot) + s1 / k
+        floats[:, 7:8] = pivot
     ints[:, 0:1] = total
     ints[:, 1:2] = nbad
+    row = pl.program_id(0)
     for j, s in enumerate(csums):
-        ints[:, 2 + j : 3 + j] = s
+        ints[:, 2 + j : 3 + j] = jnp.where(j * rows + row < counted, s, 0)
 
 
 class Batch(NamedTuple):
@@ -255,9 +263,8 @@ def fold(
     interpret: bool = False,
 ) -> tuple[Batch, tuple[jax.Array, ...]]:
     """Folds a batch `values[R, B]` (float32) where `mask` (bool): its statistics
-    (`Batch`; `nonfinite[R, B]` int32 flags, `shift[R]` float32, `counted[C, B]` int32 with
-    C a multiple of R: as arrays shaped like the batch, XLA writes them in the same
-    kernel as the batch, where a `[C, B]` of its own is one more kernel per step), and
+    (`Batch`; `nonfinite[R, B]` int32 flags, `shift[R]` float32, `counted[C, B]` int32,
+    whose sums come back zero-padded to a multiple of R), and
     each ring's data with its rows' newest arrivals written in, stamped with the row's
     `steps[r]` (uint32).
 
@@ -275,7 +282,7 @@ def fold(
         table += [np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)]
     table = np.stack(table, axis=1)
     table = np.pad(table, ((0, 0), (0, pl.next_power_of_2(table.shape[1]) - table.shape[1])))
-    packs = counted.shape[0] // rows
+    packs = -(-counted.shape[0] // rows)
 
     def whole(a):
         return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
@@ -301,7 +308,12 @@ def fold(
     ]
     if n_chunks > 1:
         args.append((chunk_counts(mask, chunk), cols(pl.next_power_of_2(n_chunks))))
-    args += [(counted[p * rows : (p + 1) * rows], line) for p in range(packs)]
+    last = counted.shape[0] - 1
+    for p in range(packs):
+        # Pack p's row r is counted row p * rows + r; rows past the last read the last
+        # one, and count nothing (no padded copy of `counted` is written for the kernel).
+        spec = pl.BlockSpec((1, batch), lambda i, *c, p=p: (jnp.minimum(p * rows + i, last), 0))
+        args.append((counted, spec))
     if ema is not None:
         args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
     first_ring = len(args)
@@ -318,6 +330,8 @@ def fold(
         ema=ema is not None,
         rings=tuple(r.data.shape[1] for r in rings),
         packs=packs,
+        counted=counted.shape[0],
+        rows=rows,
         batch=batch,
     )
     floats, ints, *data = pl.pallas_call(
@@ -336,8 +350,8 @@ def fold(
         floats, ints = floats[:, 0], ints[:, 0]
         mean_dev, m2 = floats[:, 3], floats[:, 4]
     else:
-        mean_dev, m2 = _moments(ints[..., 0], floats[..., 6], floats[..., 7], floats[..., 4])
-        ints = jnp.sum(ints, axis=1)
+        mean_dev, m2 = _moments(ints[..., 0], floats[..., 6], floats[:, 0, 7], floats[..., 4])
+        ints = jnp.stack([jnp.sum(ints[..., i], axis=1) for i in range(n_int)], axis=1)
         floats = jnp.stack(
             [
                 jnp.sum(floats[..., 0], axis=1),
@@ -369,18 +383,14 @@ def chunk_counts(mask: jax.Array, chunk: int) -> jax.Array:
     return jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
 
 
-def _moments(k, p, fine, m2):
-    """A row's mean deviation and sum of squared deviations from its chunks' (`[R, n]`):
-    counts `k`, each chunk's mean deviation as its rounded part `p` plus `fine`, and
-    sums of squares `m2` around it. Chan's rule for n parts: the chunks' means are taken
-    off a pivot near them first (their rounded weighted mean), exactly in float32 where
-    they are close, so that the spread of the chunks' means is not lost to the ulp of a
-    mean far from zero."""
-    some = k > 0
+def _moments(k, dev, pivot, m2):
+    """A row's mean deviation and sum of squared deviations around it, from its chunks'
+    (`[R, n]`): their counts `k`, their mean deviations as `dev` off the row's `pivot`, and
+    their sums of squares `m2` around their means. Chan's rule for n parts, its sums
+    taken in one pass (one reduction with the others): the chunks' means are near the
+    pivot, so the sum of their squares does not cancel."""
     kf = k.astype(jnp.float32)
-    total = jnp.maximum(jnp.sum(kf, axis=1, keepdims=True), 1)
-    pivot = jnp.sum(jnp.where(some, kf * p, 0), axis=1, keepdims=True) / total
-    d = jnp.where(some, p - pivot + fine, 0)
-    mean = jnp.sum(kf * d, axis=1, keepdims=True) / total
-    spread = jnp.sum(jnp.where(some, kf * (d - mean) ** 2, 0), axis=1)
-    return (pivot + mean)[:, 0], jnp.sum(m2, axis=1) + spread
+    s1 = jnp.sum(kf * dev, axis=1)
+    s2 = jnp.sum(kf * dev * dev, axis=1)
+    mean = s1 / jnp.maximum(jnp.sum(kf, axis=1), 1)
+    return pivot + mean, jnp.sum(m2, axis=1) + jnp.maximum(s2 - s1 * mean, 0)

@@ -427,7 +427,8 @@ def check_fused_kernel(rows, batch, size, seed):
     level = rng.choice([1e4, 1e6])
     values = (level + rng.normal(size=(rows, batch))).astype(np.float32)
     nonfinite = rng.integers(0, 2, (rows, batch), dtype=np.int32)
-    counted = rng.integers(0, 3, (rows * rng.integers(0, 3), batch), dtype=np.int32)
+    # Counted rows of any number: their sums come back padded to whole packs of `rows`.
+    counted = rng.integers(0, 3, (rng.integers(0, 2 * rows + 1), batch), dtype=np.int32)
     coeff = rng.choice([0.0, 0.01, 0.3, 1.0], rows).astype(np.float32)
     ema_w = rng.choice([0.0, 1.0], rows).astype(np.float32)  # 0: unseeded
     ema_off, shift = (level + rng.normal(size=(2, rows))).astype(np.float32)
@@ -448,7 +449,10 @@ def check_fused_kernel(rows, batch, size, seed):
 
     args = (mask, values, nonfinite, steps, counted, ema_w, ema_off, shift, data, pos)
     stats, (got,) = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
-    np.testing.assert_array_equal(stats.counted_sums, counted.sum(axis=1))
+    packs = -(-len(counted) // rows)
+    want_counted = np.zeros(packs * rows, np.int64)
+    want_counted[: len(counted)] = counted.sum(axis=1)
+    np.testing.assert_array_equal(stats.counted_sums, want_counted)
     np.testing.assert_array_equal(stats.nonfinite, nonfinite.sum(axis=1))
     np.testing.assert_array_equal(stats.count, mask.sum(axis=1))
 
