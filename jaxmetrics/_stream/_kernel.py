@@ -346,23 +346,7 @@ def fold(
     )(*(a for a, _ in args))
     floats = floats.reshape(rows, n_chunks, 8)
     ints = ints.reshape(rows, n_chunks, n_int)
-    if n_chunks == 1:
-        floats, ints = floats[:, 0], ints[:, 0]
-        mean_dev, m2 = floats[:, 3], floats[:, 4]
-    else:
-        mean_dev, m2 = _moments(ints[..., 0], floats[..., 6], floats[:, 0, 7], floats[..., 4])
-        ints = jnp.stack([jnp.sum(ints[..., i], axis=1) for i in range(n_int)], axis=1)
-        floats = jnp.stack(
-            [
-                jnp.sum(floats[..., 0], axis=1),
-                jnp.min(floats[..., 1], axis=1),
-                jnp.max(floats[..., 2], axis=1),
-                mean_dev,
-                m2,
-                jnp.sum(floats[..., 5], axis=1),
-            ],
-            axis=1,
-        )
+    floats, ints = (floats[:, 0], ints[:, 0]) if n_chunks == 1 else combine(floats, ints)
     stats = Batch(
         ints[:, 0],
         *(floats[:, i] for i in range(5)),
@@ -381,6 +365,25 @@ def chunk_counts(mask: jax.Array, chunk: int) -> jax.Array:
     padded = jnp.pad(mask, ((0, 0), (0, n * chunk - batch)))
     counts = jnp.sum(padded.reshape(rows, n, chunk), axis=2, dtype=jnp.int32)
     return jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
+
+
+def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """A row's `floats` and `ints` from its chunks' (`[R, n, 8]`, `[R, n, I]`): sums,
+    min, max, and the moments by `_moments`, all in one reduction over the chunks."""
+    mean_dev, m2 = _moments(ints[..., 0], floats[..., 6], floats[:, 0, 7], floats[..., 4])
+    row_ints = jnp.stack([jnp.sum(ints[..., i], axis=1) for i in range(ints.shape[2])], axis=1)
+    row_floats = jnp.stack(
+        [
+            jnp.sum(floats[..., 0], axis=1),
+            jnp.min(floats[..., 1], axis=1),
+            jnp.max(floats[..., 2], axis=1),
+            mean_dev,
+            m2,
+            jnp.sum(floats[..., 5], axis=1),
+        ],
+        axis=1,
+    )
+    return row_floats, row_ints
 
 
 def _moments(k, dev, pivot, m2):
