@@ -86,11 +86,12 @@ def add_with_counts(
         nonfinite = jnp.zeros(values.shape, jnp.int32)
     if plan.ema_rows or plan.windows or plan.hists or plan.sketches:
         values, mask = gathered(values), gathered(mask)
-    args = (plan, s, values, mask, nonfinite, shift)
+    counted = jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
+    args = (plan, s, values, mask, nonfinite, shift, counted)
     if (plan.ema_rows or plan.windows) and fused and _kernel.fits(mask.shape[1], dt):
-        folded = _fold_fused(*args, counted, interpret)
+        folded = _fold_fused(*args, interpret)
     else:
-        folded = _fold(*args, _padded(plan, counted))
+        folded = _fold(*args)
     stats, ema_data, window_data, hists, hist_steps = folded
     k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, counted_sums = stats
 
@@ -428,18 +429,11 @@ def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
     )
 
 
-def _padded(plan: StreamPlan, counted: jax.Array) -> jax.Array:
-    """`counted` with zero rows up to `counts_width`."""
-    return jnp.pad(counted, ((0, counts_width(plan, counted.shape[0]) - counted.shape[0]), (0, 0)))
-
-
 def _fold_fused(
     plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, counted, interpret
 ):
     """`_fold` on a CUDA GPU (or where `interpret`): the batch's statistics, the EMA and
-    the rings in one kernel of our own (`_kernel.fold`); elsewhere `_fold` itself.
-    `counted` comes unpadded: the kernel reads its rows where they are, where a padded
-    copy would be written out for it."""
+    the rings in one kernel of our own (`_kernel.fold`); elsewhere `_fold` itself."""
     rows = len(plan.rows)
 
     def where_of(members: tuple[int, ...]) -> np.ndarray:
@@ -468,7 +462,7 @@ def _fold_fused(
         return stats, ema_data, tuple(data), *_hists_add(plan, s, values, mask)
 
     def reference(s, values, mask, nonfinite, shift, counted):
-        return _fold(plan, s, values, mask, nonfinite, shift, _padded(plan, counted))
+        return _fold(plan, s, values, mask, nonfinite, shift, counted)
 
     args = (s, values, mask, nonfinite, shift, counted)
     if interpret:

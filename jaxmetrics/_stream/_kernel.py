@@ -12,6 +12,12 @@ and the weighted sum follow, and the ring slots are written in place (the rings 
 aliased to the outputs; other rows never touch a row's slots). With the full spec a step
 then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
 
+A row longer than `ONE_PROGRAM` is folded by one program per chunk of it, so that the
+GPU's multiprocessors share the batch: one small XLA reduction first counts each chunk's
+masked-in entries, from which a chunk's program knows how many of the row's arrivals
+follow it (its ranks, EMA weights and ring slots are the row's), and the chunks' partial
+statistics are combined after the kernel, in the kernel that updates the per-row state.
+
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
 """
@@ -26,22 +32,24 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 MIN_BATCH = 32
-MAX_BATCH = 4096
+MAX_BATCH = 65536
+ONE_PROGRAM = 4096
 
 
 def fits(batch: int, dtype) -> bool:
     """Whether the kernel serves a float32 batch of `batch` entries per row: any size
-    from `MIN_BATCH` to `MAX_BATCH`. Past that, one program per row (looping over blocks
-    of the row, or a grid over them) is slower than XLA's kernels, which spread the
-    batch over the GPU (docs/benchmarks.md, "Tried and not kept")."""
-    return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch
+    from `MIN_BATCH` to `MAX_BATCH`, the largest measured faster than XLA's kernels
+    (docs/benchmarks.md)."""
+    return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
 
 
 def chunking(batch: int) -> tuple[int, int]:
     """The entries one program folds and the number of programs per row of `batch`: a
-    row up to `MAX_BATCH` entries in one, a longer one in chunks of 1,024 entries (2,048
-    past 16,384) whose partial statistics `fold` combines."""
-    if batch <= MAX_BATCH:
+    row up to `ONE_PROGRAM` entries in one, a longer one in chunks of 1,024 entries
+    (2,048 past 16,384) whose partial statistics `fold` combines. One program per long
+    row leaves most of the GPU idle (ten rows, ten programs), and smaller chunks make
+    more programs and partial statistics than the GPU gains from."""
+    if batch <= ONE_PROGRAM:
         return batch, 1
     chunk = 1024 if batch <= 16384 else 2048
     return chunk, -(-batch // chunk)
@@ -74,13 +82,11 @@ class EmaIn(NamedTuple):
     ema_off: jax.Array
 
 
-def _kernel(
-    *refs, ema: bool, rings: tuple[int, ...], packs: int, counted: int, rows: int, batch: int
-):
-    """One chunk of a batch row (`chunking`) of `rows`; `rings` are the ring sizes,
-    `packs` the counted arrays (holding `counted` rows in all). `table` holds the row's
-    static ints: the EMA coefficient's bits, then each ring's `row` and `pos_row`;
-    `counts` (past one chunk) the row's masked-in entries per chunk.
+def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
+    """One chunk of a batch row (`chunking`); `rings` are the ring sizes, `packs` the
+    counted arrays. `table` holds the row's static ints: the EMA coefficient's bits, then
+    each ring's `row` and `pos_row`; `counts` (past one chunk) the row's masked-in
+    entries per chunk.
 
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
     blocks (`blocking`), the last ending at the row's end with the entries already
@@ -229,9 +235,8 @@ def _kernel(
         floats[:, 7:8] = pivot
     ints[:, 0:1] = total
     ints[:, 1:2] = nbad
-    row = pl.program_id(0)
     for j, s in enumerate(csums):
-        ints[:, 2 + j : 3 + j] = jnp.where(j * rows + row < counted, s, 0)
+        ints[:, 2 + j : 3 + j] = s
 
 
 class Batch(NamedTuple):
@@ -263,8 +268,9 @@ def fold(
     interpret: bool = False,
 ) -> tuple[Batch, tuple[jax.Array, ...]]:
     """Folds a batch `values[R, B]` (float32) where `mask` (bool): its statistics
-    (`Batch`; `nonfinite[R, B]` int32 flags, `shift[R]` float32, `counted[C, B]` int32,
-    whose sums come back zero-padded to a multiple of R), and
+    (`Batch`; `nonfinite[R, B]` int32 flags, `shift[R]` float32, `counted[C, B]` int32 with
+    C a multiple of R: as arrays shaped like the batch, XLA writes them in the same
+    kernel as the batch, where a `[C, B]` of its own is one more kernel per step), and
     each ring's data with its rows' newest arrivals written in, stamped with the row's
     `steps[r]` (uint32).
 
@@ -282,7 +288,7 @@ def fold(
         table += [np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)]
     table = np.stack(table, axis=1)
     table = np.pad(table, ((0, 0), (0, pl.next_power_of_2(table.shape[1]) - table.shape[1])))
-    packs = -(-counted.shape[0] // rows)
+    packs = counted.shape[0] // rows
 
     def whole(a):
         return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
@@ -308,12 +314,7 @@ def fold(
     ]
     if n_chunks > 1:
         args.append((chunk_counts(mask, chunk), cols(pl.next_power_of_2(n_chunks))))
-    last = counted.shape[0] - 1
-    for p in range(packs):
-        # Pack p's row r is counted row p * rows + r; rows past the last read the last
-        # one, and count nothing (no padded copy of `counted` is written for the kernel).
-        spec = pl.BlockSpec((1, batch), lambda i, *c, p=p: (jnp.minimum(p * rows + i, last), 0))
-        args.append((counted, spec))
+    args += [(counted[p * rows : (p + 1) * rows], line) for p in range(packs)]
     if ema is not None:
         args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
     first_ring = len(args)
@@ -330,8 +331,6 @@ def fold(
         ema=ema is not None,
         rings=tuple(r.data.shape[1] for r in rings),
         packs=packs,
-        counted=counted.shape[0],
-        rows=rows,
         batch=batch,
     )
     floats, ints, *data = pl.pallas_call(
@@ -369,31 +368,31 @@ def chunk_counts(mask: jax.Array, chunk: int) -> jax.Array:
 
 def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
     """A row's `floats` and `ints` from its chunks' (`[R, n, 8]`, `[R, n, I]`): sums,
-    min, max, and the moments by `_moments`, all in one reduction over the chunks."""
-    mean_dev, m2 = _moments(ints[..., 0], floats[..., 6], floats[:, 0, 7], floats[..., 4])
-    row_ints = jnp.stack([jnp.sum(ints[..., i], axis=1) for i in range(ints.shape[2])], axis=1)
-    row_floats = jnp.stack(
-        [
-            jnp.sum(floats[..., 0], axis=1),
-            jnp.min(floats[..., 1], axis=1),
-            jnp.max(floats[..., 2], axis=1),
-            mean_dev,
-            m2,
-            jnp.sum(floats[..., 5], axis=1),
-        ],
-        axis=1,
-    )
-    return row_floats, row_ints
+    min, max, and the moments by Chan's rule for n parts. The chunks' mean deviations
+    (slot 6) are taken off a pivot every chunk of the row shares (slot 7), near them:
+    the sum of their squares does not cancel, and one pass takes it.
 
+    Written as elementwise folds over the n chunks, not as reductions: XLA then computes
+    them in the kernel that updates the per-row state, where reductions over the chunk
+    axis were kernels of their own (two more per step)."""
 
-def _moments(k, dev, pivot, m2):
-    """A row's mean deviation and sum of squared deviations around it, from its chunks'
-    (`[R, n]`): their counts `k`, their mean deviations as `dev` off the row's `pivot`, and
-    their sums of squares `m2` around their means. Chan's rule for n parts, its sums
-    taken in one pass (one reduction with the others): the chunks' means are near the
-    pivot, so the sum of their squares does not cancel."""
-    kf = k.astype(jnp.float32)
-    s1 = jnp.sum(kf * dev, axis=1)
-    s2 = jnp.sum(kf * dev * dev, axis=1)
-    mean = s1 / jnp.maximum(jnp.sum(kf, axis=1), 1)
-    return pivot + mean, jnp.sum(m2, axis=1) + jnp.maximum(s2 - s1 * mean, 0)
+    def over_chunks(op, a):
+        return functools.reduce(op, [a[:, j] for j in range(a.shape[1])])
+
+    def total(a):
+        return over_chunks(jnp.add, a)
+
+    k = ints[..., 0].astype(jnp.float32)
+    dev, pivot = floats[..., 6], floats[:, 0, 7]
+    s1, s2 = total(k * dev), total(k * dev * dev)
+    mean = s1 / jnp.maximum(total(k), 1)
+    row_floats = [
+        total(floats[..., 0]),
+        over_chunks(jnp.minimum, floats[..., 1]),
+        over_chunks(jnp.maximum, floats[..., 2]),
+        pivot + mean,
+        total(floats[..., 4]) + jnp.maximum(s2 - s1 * mean, 0),
+        total(floats[..., 5]),
+    ]
+    row_ints = [total(ints[..., i]) for i in range(ints.shape[2])]
+    return jnp.stack(row_floats, axis=1), jnp.stack(row_ints, axis=1)
