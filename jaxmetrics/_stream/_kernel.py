@@ -229,8 +229,8 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     if ema:
         floats[:, 5:6] = wsum
     if n_chunks > 1:
-        first = x_ref[:, 0:1] - shift
-        pivot = jnp.where(jnp.isfinite(first), first, 0)
+        lead = x_ref[:, 0:1] - shift
+        pivot = jnp.where(jnp.isfinite(lead), lead, 0)
         floats[:, 6:7] = (p - pivot) + s1 / k
         floats[:, 7:8] = pivot
     ints[:, 0:1] = total
