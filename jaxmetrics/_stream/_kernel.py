@@ -12,6 +12,12 @@ and the weighted sum follow, and the ring slots are written in place (the rings 
 aliased to the outputs; other rows never touch a row's slots). With the full spec a step
 then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
 
+A row longer than `ONE_PROGRAM` is folded by one program per chunk of it, so that the
+GPU's multiprocessors share the batch: one small XLA reduction first counts each chunk's
+masked-in entries, from which a chunk's program knows how many of the row's arrivals
+follow it (its ranks, EMA weights and ring slots are the row's), and the chunks' partial
+statistics are combined after the kernel, in the kernel that updates the per-row state.
+
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
 """
@@ -26,15 +32,27 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 MIN_BATCH = 32
-MAX_BATCH = 4096
+MAX_BATCH = 65536
+ONE_PROGRAM = 4096
 
 
 def fits(batch: int, dtype) -> bool:
     """Whether the kernel serves a float32 batch of `batch` entries per row: any size
-    from `MIN_BATCH` to `MAX_BATCH`. Past that, one program per row (looping over blocks
-    of the row, or a grid over them) is slower than XLA's kernels, which spread the
-    batch over the GPU (docs/benchmarks.md, "Tried and not kept")."""
+    from `MIN_BATCH` to `MAX_BATCH`, the largest measured faster than XLA's kernels
+    (docs/benchmarks.md)."""
     return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
+
+
+def chunking(batch: int) -> tuple[int, int]:
+    """The entries one program folds and the number of programs per row of `batch`: a
+    row up to `ONE_PROGRAM` entries in one, a longer one in chunks of 1,024 entries
+    (2,048 past 16,384) whose partial statistics `fold` combines. One program per long
+    row leaves most of the GPU idle (ten rows, ten programs), and smaller chunks make
+    more programs and partial statistics than the GPU gains from."""
+    if batch <= ONE_PROGRAM:
+        return batch, 1
+    chunk = 1024 if batch <= 16384 else 2048
+    return chunk, -(-batch // chunk)
 
 
 def blocking(batch: int) -> tuple[int, int]:
@@ -65,44 +83,72 @@ class EmaIn(NamedTuple):
 
 
 def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
-    """One batch row; `rings` are the ring sizes, `packs` the counted arrays. `table` holds
-    the row's static ints: the EMA coefficient's bits, then each ring's `row` and
-    `pos_row`.
+    """One chunk of a batch row (`chunking`); `rings` are the ring sizes, `packs` the
+    counted arrays. `table` holds the row's static ints: the EMA coefficient's bits, then
+    each ring's `row` and `pos_row`; `counts` (past one chunk) the row's masked-in
+    entries per chunk.
 
-    Triton's blocks are powers of two: a row that is not one is loaded as two blocks
-    (`blocking`), the second ending at the row's end with the entries the first covered
-    masked out, so that no load reaches past the row (Pallas' interpret mode cannot). The
-    blocks stay in registers for two passes: the first sums what needs no arrival rank
-    (the count among them, which the ranks need), the second takes the ranks, the
-    moments around the first pass's mean, the EMA's weighted sum and the ring writes."""
+    Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
+    blocks (`blocking`), the last ending at the row's end with the entries already
+    covered masked out, so that no load reaches past the row (Pallas' interpret mode
+    cannot). The blocks stay in registers for two passes: the first sums what needs no
+    arrival rank (the count among them, which the ranks need), the second takes the
+    ranks, the moments around the first pass's mean, the EMA's weighted sum and the ring
+    writes. A chunk's ranks add the row's entries in later chunks (from `counts`), and
+    its EMA weights and ring slots follow from those global ranks. Its mean deviation is
+    also written off a pivot that every chunk of the row shares (the row's first value),
+    so that the chunks' means combine without the rounding of means far from zero."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
+    chunk, n_chunks = chunking(batch)
+    if n_chunks > 1:
+        counts_ref, *refs = refs
     counted_refs, refs = refs[:packs], refs[packs:]
     if ema:
         w_ref, eoff_ref, *refs = refs
     ring_in, refs = refs[: 2 * len(rings)], refs[2 * len(rings) :]
     floats, ints, *refs = refs
-    block, n_blocks = blocking(batch)
+    block, n_blocks = blocking(chunk)
+    operands = [m_ref, x_ref, bad_ref, *counted_refs]
 
     def load(j):
-        operands = [m_ref, x_ref, bad_ref, *counted_refs]
-        start = min(j * block, batch - block)
+        start = min(j * block, chunk - block)
         if start == j * block:
             return [r[:, pl.ds(start, block)] for r in operands]
         fresh = jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) >= j * block - start
         at = (slice(None), pl.ds(start, block))
         return [plt.load(r.at[at], mask=fresh, other=jnp.zeros((), r.dtype)) for r in operands]
 
-    loaded = [load(j) for j in range(n_blocks)]
+    def load_chunk(c):
+        # The last chunk of a row that chunks do not divide ends at the row's end; its
+        # entries of the chunk before are masked out.
+        lo = c * chunk
+        if batch % chunk == 0:
+            return [[r[:, pl.ds(lo, chunk)] for r in operands]]
+        start = jnp.minimum(lo, batch - chunk)
+        fresh = jax.lax.broadcasted_iota(jnp.int32, (1, chunk), 1) + start >= lo
+        at = (slice(None), pl.ds(start, chunk))
+        return [[plt.load(r.at[at], mask=fresh, other=jnp.zeros((), r.dtype)) for r in operands]]
+
+    row_sum = functools.partial(jnp.sum, axis=1, keepdims=True)
+    if n_chunks == 1:
+        loaded = [load(j) for j in range(n_blocks)]
+        later = None
+    else:
+        chunk_id = pl.program_id(1)
+        loaded = load_chunk(chunk_id)
+        counts = counts_ref[...]
+        later_chunks = jax.lax.broadcasted_iota(jnp.int32, counts.shape, 1) > chunk_id
+        later = row_sum(jnp.where(later_chunks, counts, 0))
+        row_total = row_sum(counts)
 
     def blocks(body, init, n_refs):
         """`body(*the first n_refs of a block's mask, values, flags, counted..., carry)`
-        folded over the row's blocks."""
+        folded over the chunk's blocks."""
         for block_values in loaded:
             init = body(*block_values[:n_refs], init)
         return init
 
     shift = shift_ref[...]
-    row_sum = functools.partial(jnp.sum, axis=1, keepdims=True)
 
     def first(m, x, bad, *rest):
         *counted, acc = rest
@@ -124,6 +170,8 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     fzero = jnp.zeros((1, 1), jnp.float32)
     init = (izero, fzero, fzero + jnp.inf, fzero - jnp.inf, fzero, izero, (izero,) * packs)
     total, xsum, xmin, xmax, dsum, nbad, csums = blocks(first, init, 3 + packs)
+    if later is None:
+        later, row_total = izero, total
 
     # The moments take two passes: deviations from `shift`, then from their rounded mean
     # `p`, corrected by the mean of the second deviations (exact for any `p`; accurate
@@ -144,24 +192,24 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
         row = table[:, 1 + 2 * i : 2 + 2 * i]  # [1, 1]
         pos_row = jnp.maximum(table[:, 2 + 2 * i : 3 + 2 * i], 0)
         pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
-        ring_at.append((row, pos + jnp.minimum(total, size) - 1))
+        ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))
 
     def second(m, x, acc):
         before, s1, s2, wsum = acc
         m = m.astype(jnp.int32)
         on = m != 0
         zero = jnp.zeros_like(x)
-        after = total - before - jnp.cumsum(m, axis=1)
+        after = later + total - before - jnp.cumsum(m, axis=1)
         e = jnp.where(on, x - shift - p, zero)
         if ema:
             # (1-c)^after; 0^0 = 1 for c = 1, as jnp.power gives.
             decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(jnp.float32) * log_keep))
-            weight = jnp.where(seeding & (after == total - 1), decay, c * decay)
+            weight = jnp.where(seeding & (after == row_total - 1), decay, c * decay)
             wsum = wsum + row_sum(weight * jnp.where(on, x - off, zero))
         # Only the last `size` arrivals go in, to consecutive slots in arrival order. The
-        # rings are aliased to their outputs: what this row does not write stays. Entries
-        # left out are also pointed past the ring (Pallas' interpret mode writes them
-        # back).
+        # rings are aliased to their outputs: what this program does not write stays.
+        # Entries left out are also pointed past the ring (Pallas' interpret mode writes
+        # them back).
         bits = jax.lax.bitcast_convert_type(x, jnp.uint32)
         stamp = jnp.broadcast_to(step_ref[...], x.shape)
         for size, out, (row, newest) in zip(rings, refs, ring_at):
@@ -180,6 +228,11 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     floats[:, 4:5] = jnp.maximum(s2 - s1 * s1 / k, 0)
     if ema:
         floats[:, 5:6] = wsum
+    if n_chunks > 1:
+        lead = x_ref[:, 0:1] - shift
+        pivot = jnp.where(jnp.isfinite(lead), lead, 0)
+        floats[:, 6:7] = (p - pivot) + s1 / k
+        floats[:, 7:8] = pivot
     ints[:, 0:1] = total
     ints[:, 1:2] = nbad
     for j, s in enumerate(csums):
@@ -228,8 +281,7 @@ def fold(
     slowly (Pallas' interpret mode).
     """
     rows, batch = mask.shape
-    if batch > MAX_BATCH:
-        raise ValueError(f"fold: batch of {batch} entries per row; at most {MAX_BATCH}.")
+    chunk, n_chunks = chunking(batch)
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
     table = [coeff.view(np.int32)]
     for r in rings:
@@ -239,13 +291,16 @@ def fold(
     packs = counted.shape[0] // rows
 
     def whole(a):
-        return pl.BlockSpec(a.shape, lambda i: (0,) * a.ndim)
+        return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
 
     def col(a):
         return a.reshape(rows, 1)
 
     def cols(n):
-        return pl.BlockSpec((1, n), lambda i: (i, 0))
+        return pl.BlockSpec((1, n), lambda i, *c: (i, 0))
+
+    def per_program(n):
+        return pl.BlockSpec((1, n), lambda i, *c: (i, *c) if c else (i, 0))
 
     line = cols(batch)
     one = cols(1)
@@ -257,6 +312,8 @@ def fold(
         (col(steps.astype(jnp.uint32)), one),
         (jnp.asarray(table), cols(table.shape[1])),
     ]
+    if n_chunks > 1:
+        args.append((chunk_counts(mask, chunk), cols(pl.next_power_of_2(n_chunks))))
     args += [(counted[p * rows : (p + 1) * rows], line) for p in range(packs)]
     if ema is not None:
         args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
@@ -265,8 +322,8 @@ def fold(
         args += [(r.data, whole(r.data)), (r.pos, whole(r.pos))]
     n_int = pl.next_power_of_2(2 + packs)
     outs = [
-        (jax.ShapeDtypeStruct((rows, 8), jnp.float32), cols(8)),
-        (jax.ShapeDtypeStruct((rows, n_int), jnp.int32), cols(n_int)),
+        (jax.ShapeDtypeStruct((rows, 8 * n_chunks), jnp.float32), per_program(8)),
+        (jax.ShapeDtypeStruct((rows, n_int * n_chunks), jnp.int32), per_program(n_int)),
     ]
     outs += [(jax.ShapeDtypeStruct(r.data.shape, r.data.dtype), whole(r.data)) for r in rings]
     kernel = functools.partial(
@@ -279,13 +336,16 @@ def fold(
     floats, ints, *data = pl.pallas_call(
         kernel,
         out_shape=tuple(s for s, _ in outs),
-        grid=(rows,),
+        grid=(rows,) if n_chunks == 1 else (rows, n_chunks),
         in_specs=[s for _, s in args],
         out_specs=tuple(s for _, s in outs),
         input_output_aliases={first_ring + 2 * i: 2 + i for i in range(len(rings))},
         interpret=interpret,
         compiler_params=None if interpret else plt.CompilerParams(num_warps=8),
     )(*(a for a, _ in args))
+    floats = floats.reshape(rows, n_chunks, 8)
+    ints = ints.reshape(rows, n_chunks, n_int)
+    floats, ints = (floats[:, 0], ints[:, 0]) if n_chunks == 1 else combine(floats, ints)
     stats = Batch(
         ints[:, 0],
         *(floats[:, i] for i in range(5)),
@@ -294,3 +354,45 @@ def fold(
         ints[:, 2 : 2 + packs].T.reshape(-1),
     )
     return stats, tuple(data)
+
+
+def chunk_counts(mask: jax.Array, chunk: int) -> jax.Array:
+    """Per row of `mask[R, B]`: the masked-in entries of each chunk of `chunk` entries
+    (`[R, n]` int32, zero-padded to a power of two `n`)."""
+    rows, batch = mask.shape
+    n = -(-batch // chunk)
+    padded = jnp.pad(mask, ((0, 0), (0, n * chunk - batch)))
+    counts = jnp.sum(padded.reshape(rows, n, chunk), axis=2, dtype=jnp.int32)
+    return jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
+
+
+def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """A row's `floats` and `ints` from its chunks' (`[R, n, 8]`, `[R, n, I]`): sums,
+    min, max, and the moments by Chan's rule for n parts. The chunks' mean deviations
+    (slot 6) are taken off a pivot every chunk of the row shares (slot 7), near them:
+    the sum of their squares does not cancel, and one pass takes it.
+
+    Written as elementwise folds over the n chunks, not as reductions: XLA then computes
+    them in the kernel that updates the per-row state, where reductions over the chunk
+    axis were kernels of their own (two more per step)."""
+
+    def over_chunks(op, a):
+        return functools.reduce(op, [a[:, j] for j in range(a.shape[1])])
+
+    def total(a):
+        return over_chunks(jnp.add, a)
+
+    k = ints[..., 0].astype(jnp.float32)
+    dev, pivot = floats[..., 6], floats[:, 0, 7]
+    s1, s2 = total(k * dev), total(k * dev * dev)
+    mean = s1 / jnp.maximum(total(k), 1)
+    row_floats = [
+        total(floats[..., 0]),
+        over_chunks(jnp.minimum, floats[..., 1]),
+        over_chunks(jnp.maximum, floats[..., 2]),
+        pivot + mean,
+        total(floats[..., 4]) + jnp.maximum(s2 - s1 * mean, 0),
+        total(floats[..., 5]),
+    ]
+    row_ints = [total(ints[..., i]) for i in range(ints.shape[2])]
+    return jnp.stack(row_floats, axis=1), jnp.stack(row_ints, axis=1)

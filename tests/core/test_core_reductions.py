@@ -395,6 +395,30 @@ def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     check_fused_kernel(rows, batch, size, seed)
 
 
+@pytest.mark.parametrize(
+    ("rows", "batch", "size", "seed"),
+    # Seeds drawn for masks of these densities: every entry, 50%, every entry, 2%, 50%, 2%.
+    [
+        (2, 4097, 16, 1),
+        (2, 8192, 6000, 2),
+        (3, 24576, 5000, 2),
+        (2, 65536, 16, 0),
+        (2, 65536, 4100, 4),
+        (1, 9000, 2000, 4),
+    ],
+)
+def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
+    # Past 4,096 entries a row is folded by one program per chunk: each chunk's arrival
+    # ranks count the row's later chunks, rings larger than a chunk take arrivals from
+    # several, the last chunk of a row that chunks do not divide overlaps the one before
+    # (4,097: in all but one entry), and the chunks' moments are combined; against the
+    # same loop.
+    from jaxmetrics._stream import _kernel
+
+    assert _kernel.chunking(batch)[1] > 1
+    check_fused_kernel(rows, batch, size, seed)
+
+
 def check_fused_kernel(rows, batch, size, seed):
     from jaxmetrics._stream import _kernel
 
@@ -462,9 +486,10 @@ def check_fused_kernel(rows, batch, size, seed):
 @pytest.mark.parametrize(
     ("num_envs", "dtype", "fused"),
     [(3000, "float32", True), (4096, "float32", True), (16, "float32", False)]
-    + [(4097, "float32", False), (65536, "float32", False), (3000, "float64", False)],
+    + [(4097, "float32", True), (65536, "float32", True), (65537, "float32", False)]
+    + [(3000, "float64", False)],
 )
-def test_fused_kernel_serves_float32_batches_of_32_to_4096(monkeypatch, num_envs, dtype, fused):
+def test_fused_kernel_serves_float32_batches_of_32_to_65536(monkeypatch, num_envs, dtype, fused):
     # The kernel holds float32 only: a float64 state, and batches under the kernel's
     # smallest or past its largest, take the jnp path.
     from jaxmetrics import _stream
@@ -481,13 +506,15 @@ def test_fused_kernel_serves_float32_batches_of_32_to_4096(monkeypatch, num_envs
     assert ("pallas_call" in str(jaxpr)) == fused
 
 
-@pytest.mark.parametrize(("num_envs", "steps"), [(64, 30), (300, 10), (3000, 10)])
+@pytest.mark.parametrize(
+    ("num_envs", "steps"), [(64, 30), (300, 10), (3000, 10), (4097, 10), (12288, 10)]
+)
 def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch, num_envs, steps):
     # The whole update with the kernel (interpret mode) against the jnp path that CPUs and
     # sharded states take, over a rollout with episodes ending, non-finite values, two
     # EMAs, two window sizes and a histogram: every count, ring slot and histogram bin
     # of the state equal, every reported number to float32 rounding (the batch's sums
-    # are taken in another order). Batches of one block and of two.
+    # are taken in another order). Batches of one block, of two, and of several chunks.
     from jaxmetrics import _stream
 
     stats = {
