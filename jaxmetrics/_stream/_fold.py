@@ -75,7 +75,6 @@ def add_with_counts(
     any platform, in Pallas' interpret mode (slow: for tests)."""
     dt = plan.dtype
     width = counts.lo.shape[0]
-    wt = weight_dtype(dt)
     # Deviations from the running mean keep the moments small, so float32 stays accurate
     # for data far from zero. An empty period's mean is 0 (init, reset_period and merge
     # keep it so), so its first batch is folded as it is (Chan's pairwise update is
@@ -95,23 +94,8 @@ def add_with_counts(
     stats, ema_data, window_data, hists, hist_steps = folded
     k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, counted_sums = stats
 
-    kf = k.astype(wt)
-    na = _count.as_float(s.count, wt)
-    n = na + kf
-    frac = jnp.where(n > 0, kf / jnp.maximum(n, 1), 0)
-    # With values in the period, shift == s.mean and mb (the batch's mean minus it) is
-    # Chan's delta; without, the new mean is mb (frac == 1) and the old mean carries no
-    # weight (na == 0).
-    m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + mb * mb * (na * frac).astype(dt))
-    # Every [R] field below is a function of `k` (an empty batch leaves it as it is),
-    # which lets XLA update them all in one multi-output kernel.
-    some = k > 0
-    total, total_c = kahan_add(s.sum, s.sum_c, bsum)
-    total, total_c = jnp.where(some, total, s.sum), jnp.where(some, total_c, s.sum_c)
-    mean = period_mean(total, total_c, n, shift + mb * frac.astype(dt))
-    vmin = jnp.where(some, jnp.minimum(s.min, bmin), s.min)
-    vmax = jnp.where(some, jnp.maximum(s.max, bmax), s.max)
-
+    period = period_update(s, k, bsum, bmin, bmax, mb, m2b, bad, shift)
+    mean = period.mean
     ema, ema_off, ema_w, ema_n = s.ema, s.ema_off, s.ema_w, s.ema_n
     ema_rings = s.ema_rings
     if plan.ema_rows:
@@ -137,23 +121,12 @@ def add_with_counts(
         _sketch.add(c, _sketch.slot(g, take_rows(g.rows, values), take_rows(g.rows, mask)))
         for g, c in zip(plan.sketches, s.sketches)
     )
-    new = s._replace(
-        count=_count.add(s.count, k),
-        # Read through `k`, like `steps` and the counted sums (see the module docstring).
-        nonfinite=_count.add(s.nonfinite, jnp.where(k < 0, 0, bad)),
-        mean=mean,
-        m2=m2,
-        m2_c=m2_c,
-        sum=total,
-        sum_c=total_c,
-        min=vmin,
-        max=vmax,
+    new = period._replace(
         ema=ema,
         ema_off=ema_off,
         ema_w=ema_w,
         ema_n=ema_n,
         ema_rings=ema_rings,
-        steps=s.steps + jnp.where(k < 0, 0, 1).astype(jnp.uint32),
         windows=tuple(windows),
         hists=hists,
         hist_steps=hist_steps,
@@ -161,6 +134,43 @@ def add_with_counts(
     )
     packs = width // len(plan.rows) if plan.rows else 0
     return new, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, counted_sums))
+
+
+def period_update(
+    s: StreamState, k, bsum, bmin, bmax, mb, m2b, bad, shift: jax.Array
+) -> StreamState:
+    """`s` with a batch's period statistics folded in (its count `k`, sum, min, max, the
+    mean `mb` and squared deviations `m2b` of its values less `shift`, its non-finite
+    count `bad`, all per row) and its arrival step counted; the EMA, rings, histograms
+    and sketches as they were."""
+    dt = s.mean.dtype
+    wt = weight_dtype(dt)
+    kf = k.astype(wt)
+    na = _count.as_float(s.count, wt)
+    n = na + kf
+    frac = jnp.where(n > 0, kf / jnp.maximum(n, 1), 0)
+    # With values in the period, shift == s.mean and mb (the batch's mean minus it) is
+    # Chan's delta; without, the new mean is mb (frac == 1) and the old mean carries no
+    # weight (na == 0).
+    m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + mb * mb * (na * frac).astype(dt))
+    # Every [R] field below is a function of `k` (an empty batch leaves it as it is),
+    # which lets XLA update them all in one multi-output kernel.
+    some = k > 0
+    total, total_c = kahan_add(s.sum, s.sum_c, bsum)
+    total, total_c = jnp.where(some, total, s.sum), jnp.where(some, total_c, s.sum_c)
+    return s._replace(
+        count=_count.add(s.count, k),
+        # Read through `k`, like `steps` and the counted sums (see the module docstring).
+        nonfinite=_count.add(s.nonfinite, jnp.where(k < 0, 0, bad)),
+        mean=period_mean(total, total_c, n, shift + mb * frac.astype(dt)),
+        m2=m2,
+        m2_c=m2_c,
+        sum=total,
+        sum_c=total_c,
+        min=jnp.where(some, jnp.minimum(s.min, bmin), s.min),
+        max=jnp.where(some, jnp.maximum(s.max, bmax), s.max),
+        steps=s.steps + jnp.where(k < 0, 0, 1).astype(jnp.uint32),
+    )
 
 
 def _ranked(plan: StreamPlan) -> tuple[int, ...]:
