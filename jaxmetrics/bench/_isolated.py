@@ -137,9 +137,9 @@ def isolated(
 PROFILED = ("floor", "full")
 
 
-def _kernel_table(num_envs: int, steps: int, profiled: dict) -> Table:
+def _kernel_table(num_envs: int, steps: int, profiled: dict, name: str = "kernels") -> Table:
     t = Table(
-        "kernels",
+        name,
         f"Device time per kernel and step: {num_envs} envs, {steps}-step scan (one profiled call)",
         ["variant", "kernel", "us/step", "launches/step", "shape", "fuses"],
     )
@@ -256,9 +256,12 @@ GROUP_SPECS = (
 """The specs of the per-group table: the bench's `random_spec` features, and their label."""
 
 
-def groups(group_list: list[int], num_envs: int, steps: int, repeats: int) -> Table:
+def groups(
+    group_list: list[int], num_envs: int, steps: int, repeats: int, profile: bool = False
+) -> list[Table]:
     """Per-group statistics: the full 10-term spec and its period statistics alone (every
-    group row a segment row), kept per group, each against itself without groups."""
+    group row a segment row), kept per group, each against itself without groups; with
+    `profile`, also the device time of each kernel of both specs at the most groups."""
     t = Table(
         "groups",
         f"Per-group statistics ({num_envs} envs, 10 terms, {steps}-step scan)",
@@ -317,4 +320,11 @@ def groups(group_list: list[int], num_envs: int, steps: int, repeats: int) -> Ta
         "whose per-step work grows with rows x envs. 'period stats' is the spec with "
         "simple statistics only (mixed reductions)."
     )
-    return t
+    if not profile:
+        return [t]
+    by_name = {v.name: v for v in variants}
+    profiled = {
+        f"{features}, {most} groups": (by_name[f"{features}_g{most}"], infos[f"{features}_g{most}"])
+        for features, _ in GROUP_SPECS
+    }
+    return [t, _kernel_table(num_envs, steps, profiled, "group_kernels")]
