@@ -338,9 +338,10 @@ class Metrics:
         seg_plan = self._rows.ep_segments
 
         def fold(st, v, m, n, t, e, g):
-            if g is None:
-                return _stream.add_with_counts(plan, st, v, m, n, t, e, fused=shards == 1)
-            return _stream.add_segmented(plan, seg_plan, st, v, m, n, t, e, g, fused=shards == 1)
+            segments = None if g is None else (seg_plan, g)
+            return _stream.add_with_counts(
+                plan, st, v, m, n, t, e, fused=shards == 1, segments=segments
+            )
 
         args = (
             state.finished,

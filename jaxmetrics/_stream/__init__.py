@@ -34,7 +34,6 @@ from ._merge import combine as combine
 from ._merge import merge as merge
 from ._merge import pad_ema_history as pad_ema_history
 from ._segments import SegmentPlan as SegmentPlan
-from ._segments import add_segmented as add_segmented
 from ._segments import segment_batch as segment_batch
 from ._state import MAX_EMA_HISTORY as MAX_EMA_HISTORY
 from ._state import Ring as Ring

@@ -17,7 +17,8 @@ from .. import _count, _sketch
 from .._count import Count
 from .._numerics import kahan_add
 from .._sharding import gathered
-from . import _kernel
+from . import _kernel, _segments
+from ._segments import SegmentPlan
 from ._state import (
     INT32_MAX,
     HistGroup,
@@ -63,6 +64,7 @@ def add_with_counts(
     counts: Count,
     fused: bool = False,
     interpret: bool = False,
+    segments: tuple[SegmentPlan, tuple[jax.Array, ...]] | None = None,
 ) -> tuple[StreamState, Count]:
     """`add`, and `counts` (`[counts_width(plan, C)]`) plus the sum of each row of
     `counted[C, B]` (int32), in its first C entries. The sums are taken in the batch's own
@@ -72,9 +74,16 @@ def add_with_counts(
     spec has an EMA or a window and the batch fits it; histograms and sketches keep
     XLA's kernels); the caller passes it only for a batch that is not split over
     devices, which that kernel cannot be. `interpret` (with `fused`) runs that kernel on
-    any platform, in Pallas' interpret mode (slow: for tests)."""
+    any platform, in Pallas' interpret mode (slow: for tests).
+
+    `segments`, for a stream with segment rows (`_segments`): its `SegmentPlan` and the
+    segment sources' batch (values, ok, non-finite counts, group index, `[sources, B]`);
+    `values`, `mask` and `nonfinite` are then the batch of the other rows (the plan's
+    `dense` rows). Both halves' batch statistics are put in row order before the one
+    update of the per-row fields."""
     dt = plan.dtype
     width = counts.lo.shape[0]
+    wt = weight_dtype(dt)
     # Deviations from the running mean keep the moments small, so float32 stays accurate
     # for data far from zero. An empty period's mean is 0 (init, reset_period and merge
     # keep it so), so its first batch is folded as it is (Chan's pairwise update is
@@ -85,17 +94,45 @@ def add_with_counts(
         nonfinite = jnp.zeros(values.shape, jnp.int32)
     if plan.ema_rows or plan.windows or plan.hists or plan.sketches:
         values, mask = gathered(values), gathered(mask)
-    counted = jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
-    args = (plan, s, values, mask, nonfinite, shift, counted)
-    if (plan.ema_rows or plan.windows) and fused and _kernel.fits(mask.shape[1], dt):
-        folded = _fold_fused(*args, interpret)
+    folds = plan
+    if segments is None:
+        counted = jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
+        folded = _fold_rows(plan, s, values, mask, nonfinite, shift, counted, fused, interpret)
     else:
-        folded = _fold(*args)
+        sp, batch = segments
+        folds = sp.dense_plan
+        part = _segments.dense_state(sp, s)
+        rows_counted = jnp.pad(
+            counted, ((0, counts_width(folds, counted.shape[0]) - counted.shape[0]), (0, 0))
+        )
+        folded = _fold_rows(
+            folds, part, values, mask, nonfinite, part.mean, rows_counted, fused, interpret
+        )
+        grouped = _segments.segment_batch(
+            *(gathered(a) for a in batch), sp.groups, _segments.segment_rows(sp, shift)
+        )
+        joined = _segments.joined(sp, _kernel.Batch(*folded[0]), grouped, counted.shape[0], width)
+        folded = (joined, *folded[1:])
     stats, ema_data, window_data, hists, hist_steps = folded
     k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, counted_sums = stats
 
-    period = period_update(s, k, bsum, bmin, bmax, mb, m2b, bad, shift)
-    mean = period.mean
+    kf = k.astype(wt)
+    na = _count.as_float(s.count, wt)
+    n = na + kf
+    frac = jnp.where(n > 0, kf / jnp.maximum(n, 1), 0)
+    # With values in the period, shift == s.mean and mb (the batch's mean minus it) is
+    # Chan's delta; without, the new mean is mb (frac == 1) and the old mean carries no
+    # weight (na == 0).
+    m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + mb * mb * (na * frac).astype(dt))
+    # Every [R] field below is a function of `k` (an empty batch leaves it as it is),
+    # which lets XLA update them all in one multi-output kernel.
+    some = k > 0
+    total, total_c = kahan_add(s.sum, s.sum_c, bsum)
+    total, total_c = jnp.where(some, total, s.sum), jnp.where(some, total_c, s.sum_c)
+    mean = period_mean(total, total_c, n, shift + mb * frac.astype(dt))
+    vmin = jnp.where(some, jnp.minimum(s.min, bmin), s.min)
+    vmax = jnp.where(some, jnp.maximum(s.max, bmax), s.max)
+
     ema, ema_off, ema_w, ema_n = s.ema, s.ema_off, s.ema_w, s.ema_n
     ema_rings = s.ema_rings
     if plan.ema_rows:
@@ -119,14 +156,25 @@ def add_with_counts(
         windows.append(Ring(data, pos, filled))
     sketches = tuple(
         _sketch.add(c, _sketch.slot(g, take_rows(g.rows, values), take_rows(g.rows, mask)))
-        for g, c in zip(plan.sketches, s.sketches)
+        for g, c in zip(folds.sketches, s.sketches)
     )
-    new = period._replace(
+    new = s._replace(
+        count=_count.add(s.count, k),
+        # Read through `k`, like `steps` and the counted sums (see the module docstring).
+        nonfinite=_count.add(s.nonfinite, jnp.where(k < 0, 0, bad)),
+        mean=mean,
+        m2=m2,
+        m2_c=m2_c,
+        sum=total,
+        sum_c=total_c,
+        min=vmin,
+        max=vmax,
         ema=ema,
         ema_off=ema_off,
         ema_w=ema_w,
         ema_n=ema_n,
         ema_rings=ema_rings,
+        steps=s.steps + jnp.where(k < 0, 0, 1).astype(jnp.uint32),
         windows=tuple(windows),
         hists=hists,
         hist_steps=hist_steps,
@@ -136,41 +184,13 @@ def add_with_counts(
     return new, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, counted_sums))
 
 
-def period_update(
-    s: StreamState, k, bsum, bmin, bmax, mb, m2b, bad, shift: jax.Array
-) -> StreamState:
-    """`s` with a batch's period statistics folded in (its count `k`, sum, min, max, the
-    mean `mb` and squared deviations `m2b` of its values less `shift`, its non-finite
-    count `bad`, all per row) and its arrival step counted; the EMA, rings, histograms
-    and sketches as they were."""
-    dt = s.mean.dtype
-    wt = weight_dtype(dt)
-    kf = k.astype(wt)
-    na = _count.as_float(s.count, wt)
-    n = na + kf
-    frac = jnp.where(n > 0, kf / jnp.maximum(n, 1), 0)
-    # With values in the period, shift == s.mean and mb (the batch's mean minus it) is
-    # Chan's delta; without, the new mean is mb (frac == 1) and the old mean carries no
-    # weight (na == 0).
-    m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + mb * mb * (na * frac).astype(dt))
-    # Every [R] field below is a function of `k` (an empty batch leaves it as it is),
-    # which lets XLA update them all in one multi-output kernel.
-    some = k > 0
-    total, total_c = kahan_add(s.sum, s.sum_c, bsum)
-    total, total_c = jnp.where(some, total, s.sum), jnp.where(some, total_c, s.sum_c)
-    return s._replace(
-        count=_count.add(s.count, k),
-        # Read through `k`, like `steps` and the counted sums (see the module docstring).
-        nonfinite=_count.add(s.nonfinite, jnp.where(k < 0, 0, bad)),
-        mean=period_mean(total, total_c, n, shift + mb * frac.astype(dt)),
-        m2=m2,
-        m2_c=m2_c,
-        sum=total,
-        sum_c=total_c,
-        min=jnp.where(some, jnp.minimum(s.min, bmin), s.min),
-        max=jnp.where(some, jnp.maximum(s.max, bmax), s.max),
-        steps=s.steps + jnp.where(k < 0, 0, 1).astype(jnp.uint32),
-    )
+def _fold_rows(
+    plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, counted, fused, interpret
+):
+    """`_fold`, or where `fused` and the batch fits, `_fold_fused`."""
+    if (plan.ema_rows or plan.windows) and fused and _kernel.fits(mask.shape[1], plan.dtype):
+        return _fold_fused(plan, s, values, mask, nonfinite, shift, counted, interpret)
+    return _fold(plan, s, values, mask, nonfinite, shift, counted)
 
 
 def _ranked(plan: StreamPlan) -> tuple[int, ...]:

@@ -6,8 +6,9 @@ counts) need no ordered data per row: one pass over the metric's `[envs]` values
 env's value added into the slot of its group (a scatter into `[groups]`), gives every
 group's batch statistics at a cost that does not grow with the number of groups. The
 other rows (the overall rows, and group rows with an EMA, a window, a histogram or a
-sketch) are folded as rows (`_fold.add_with_counts`), and both halves' fields are put back
-in the stream's row order: the state keeps its layout.
+sketch) are reduced as rows (`_fold`, over a plan of those rows alone), and both halves'
+batch statistics are put in the stream's row order before the one update of the
+per-row fields: the state keeps its layout, and that update stays elementwise in it.
 
 The segment rows' batch statistics are those of `_fold.batch_two_pass` (count, sum, min,
 max, then the moments around the running mean, or the batch's mean for an empty
@@ -21,15 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._count import Count
-from .._sharding import gathered
-from ._fold import add_with_counts, counts_width, period_update
+from ._kernel import Batch
 from ._state import StreamPlan, StreamState
-
-# The [R] fields `period_update` changes; the segment rows' other [R] fields (EMA,
-# window positions) stay as they are.
-PERIOD_FIELDS = ("count", "mean", "m2", "m2_c", "sum", "sum_c", "min", "max", "nonfinite", "steps")
-_OTHER_ROW_FIELDS = ("ema", "ema_off", "ema_w", "ema_n")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,13 +67,6 @@ def _dense_rows(sp: SegmentPlan, x: jax.Array) -> jax.Array:
     return _take(x, np.asarray(sp.dense, np.int32))
 
 
-def _segment_rows(sp: SegmentPlan, x: jax.Array) -> jax.Array:
-    """The segment rows of a stream field `x[R]` as `[sources, width]` (slots past a
-    source's groups repeat its last group and are never read back)."""
-    at = [[a + min(j, n - 1) for j in range(sp.width)] for a, n in sp.blocks]
-    return _take(x, np.asarray(at, np.int32).reshape(-1)).reshape(len(sp.blocks), sp.width)
-
-
 def _assembled(sp: SegmentPlan, dense: jax.Array, segment: jax.Array) -> jax.Array:
     """A stream field `[R]` from its dense rows `[R_d]` and segment rows
     `[sources, width]`, in the stream's row order."""
@@ -91,68 +78,38 @@ def _assembled(sp: SegmentPlan, dense: jax.Array, segment: jax.Array) -> jax.Arr
     return jnp.take(flat, at, axis=0, unique_indices=True)
 
 
-def _tree(f, *xs):
-    return jax.tree.map(f, *xs)
+def dense_state(sp: SegmentPlan, s: StreamState) -> StreamState:
+    """`s` as a state of `sp.dense_plan`: its [R] fields (and window positions) at the
+    dense rows; rings, histograms and sketches (dense rows only) as they are."""
 
+    def rows(x: jax.Array) -> jax.Array:
+        return _dense_rows(sp, x)
 
-def add_segmented(
-    plan: StreamPlan,
-    sp: SegmentPlan,
-    s: StreamState,
-    values: jax.Array,
-    mask: jax.Array,
-    nonfinite: jax.Array,
-    counted: jax.Array,
-    counts: Count,
-    segments: tuple[jax.Array, jax.Array, jax.Array, jax.Array],
-    fused: bool = False,
-) -> tuple[StreamState, Count]:
-    """`_fold.add_with_counts` for a stream with segment rows: `values`, `mask` and
-    `nonfinite` (`[R_d, B]`) are the dense rows' batch; `segments` are the segment
-    sources' `values`, `ok` (folded), `bad` (non-finite counts) and group index
-    (`[sources, B]`; an index out of a source's range joins none of its groups)."""
-    dense_state = s._replace(
-        **{f: _tree(lambda x: _dense_rows(sp, x), getattr(s, f)) for f in PERIOD_FIELDS},
-        **{f: _dense_rows(sp, getattr(s, f)) for f in _OTHER_ROW_FIELDS},
-        windows=tuple(
-            w._replace(pos=_dense_rows(sp, w.pos), filled=_dense_rows(sp, w.filled))
-            for w in s.windows
-        ),
+    per_row = ("count", "mean", "m2", "m2_c", "sum", "sum_c", "min", "max", "nonfinite")
+    per_row += ("ema", "ema_off", "ema_w", "ema_n", "steps")
+    return s._replace(
+        **{f: jax.tree.map(rows, getattr(s, f)) for f in per_row},
+        windows=tuple(w._replace(pos=rows(w.pos), filled=rows(w.filled)) for w in s.windows),
     )
-    # The counts ride on the dense rows' fold, padded to its own width (the entries past
-    # the counted rows stay zero).
-    full = counts.lo.shape[0]
-    width = counts_width(sp.dense_plan, counted.shape[0])
-    pad = max(width - full, 0)
-    mine = _tree(lambda c: jnp.pad(c, (0, pad))[:width], counts)
-    dense, mine = add_with_counts(
-        sp.dense_plan, dense_state, values, mask, nonfinite, counted, mine, fused
-    )
-    counts = _tree(lambda c, m: jnp.concatenate([m, c[width:]])[:full], counts, mine)
 
-    seg_state = s._replace(
-        **{f: _tree(lambda x: _segment_rows(sp, x), getattr(s, f)) for f in PERIOD_FIELDS}
-    )
-    shift = seg_state.mean
-    batch = segment_batch(*(gathered(a) for a in segments), sp.groups, shift)
-    seg = period_update(seg_state, *batch, shift)
 
-    def assembled(f: str):
-        if f in PERIOD_FIELDS:
-            return _tree(lambda d, g: _assembled(sp, d, g), getattr(dense, f), getattr(seg, f))
-        return _assembled(sp, getattr(dense, f), _segment_rows(sp, getattr(s, f)))
+def segment_rows(sp: SegmentPlan, x: jax.Array) -> jax.Array:
+    """The segment rows of a stream field `x[R]` as `[sources, width]` (slots past a
+    source's groups repeat its last group and are never read back)."""
+    at = [[a + min(j, n - 1) for j in range(sp.width)] for a, n in sp.blocks]
+    return _take(x, np.asarray(at, np.int32).reshape(-1)).reshape(len(sp.blocks), sp.width)
 
-    def ring_field(d: jax.Array, old: jax.Array) -> jax.Array:
-        return _assembled(sp, d, _segment_rows(sp, old))
 
-    new = dense._replace(
-        **{f: assembled(f) for f in PERIOD_FIELDS + _OTHER_ROW_FIELDS},
-        windows=tuple(
-            d._replace(pos=ring_field(d.pos, w.pos), filled=ring_field(d.filled, w.filled))
-            for d, w in zip(dense.windows, s.windows)
-        ),
-    )
-    return new, counts
+def joined(sp: SegmentPlan, dense: Batch, grouped: tuple[jax.Array, ...], c: int, width: int):
+    """Every row's batch statistics (`_kernel.Batch`, `[R]`; counted sums `[width]`) from
+    the dense rows' (`dense`, counted sums of the `c` counted rows first) and the segment
+    rows' (`grouped`, `segment_batch`'s seven); segment rows have no EMA sum."""
+    both = [_assembled(sp, d, g) for d, g in zip(dense[:7], grouped)]
+    ema = dense.ema
+    if ema is not None:
+        ema = _assembled(sp, ema, jnp.zeros((len(sp.blocks), sp.width), ema.dtype))
+    counted = jnp.pad(dense.counted_sums[:c], (0, width - c))
+    return Batch(*both, ema, counted)
 
 
 def segment_batch(
