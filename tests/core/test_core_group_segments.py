@@ -266,3 +266,42 @@ def test_period_statistics_of_64_groups_hold_no_array_of_groups_times_envs():
     assert (metrics, envs) in shapes or (metrics * envs,) in shapes  # the batch is there
     big = [s for s in shapes if math.prod(s) >= groups * envs]
     assert big == [], big
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**16), offset=st.sampled_from([0.0, 1e4, -1e6]))
+def test_both_scatter_forms_give_each_groups_batch_statistics(seed, offset):
+    """`segment_batch`'s CPU form (a scatter per statistic) and its accelerator form (one
+    per kind of combination) against numpy, per source and group, on one CPU."""
+    from jaxmetrics._stream import _segments
+
+    rng = np.random.default_rng(seed)
+    sources, envs, groups = 3, 64, np.array([5, 2, 5], np.int32)
+    values = (offset + rng.normal(size=(sources, envs))).astype(np.float32)
+    values[rng.random(values.shape) < 0.05] = np.nan
+    ok = (rng.random(values.shape) < 0.5) & np.isfinite(values)
+    bad = (~np.isfinite(values)).astype(np.int32)
+    group = rng.integers(-2, 7, size=values.shape).astype(np.int32)
+    shift = np.where(rng.random((sources, 5)) < 0.5, 0, offset).astype(np.float32)
+    args = tuple(map(jnp.asarray, (values, ok, bad, group, shift)))
+    forms = [
+        [np.asarray(a) for a in _segments._segment_batch(form, *args, groups)]
+        for form in (_segments.scatter_each, _segments.scatter_stacked)
+    ]
+    for s in range(sources):
+        for g in range(groups[s]):
+            inside = group[s] == g
+            x = values[s][inside & ok[s]].astype(np.float64)
+            for k, bsum, bmin, bmax, mb, m2b, nbad in (
+                [f[i][s, g] for i in range(7)] for f in forms
+            ):
+                assert k == len(x) and nbad == int(np.sum(bad[s][inside]))
+                if not len(x):
+                    assert bsum == 0 and bmin == np.inf and bmax == -np.inf
+                    continue
+                assert (bmin, bmax) == (x.min(), x.max())
+                np.testing.assert_allclose(bsum, x.sum(), rtol=1e-6)
+                spread = max(x.std(), 1e-6 * abs(x.mean()))
+                # The mean less the shift, within float32 rounding of the mean.
+                assert abs(mb + shift[s, g] - x.mean()) <= 1e-6 * max(abs(x.mean()), spread)
+                np.testing.assert_allclose(m2b, np.sum((x - x.mean()) ** 2), rtol=1e-4, atol=1e-6)
