@@ -129,18 +129,14 @@ def segment_batch(
     `bad` (int32) counts for the entry's group whether or not it is `ok`.
 
     A CPU scatters one statistic at a time (`scatter_each`: a scatter of several
-    channels runs at a third of the speed there); elsewhere the statistics of a pass
-    that combine alike share one scatter (`scatter_stacked`: on an H100 each scatter is
-    a kernel launch of its own, and at 4,096 envs the launches are the cost)."""
-    return jax.lax.platform_dependent(
-        values,
-        ok,
-        bad,
-        group,
-        shift,
-        cpu=lambda *a: _segment_batch(scatter_each, *a, groups),
-        default=lambda *a: _segment_batch(scatter_stacked, *a, groups),
-    )
+    channels runs at half the speed per statistic there); elsewhere the statistics of a
+    pass that combine alike share one scatter (`scatter_stacked`: on an H100 each scatter
+    is a kernel launch of its own, and at 4,096 envs the launches are the cost). Both give
+    the same numbers, so the form follows the default backend at trace time (a
+    `platform_dependent` choice between them is refused under `vmap` over a sharded
+    state: its branches' outputs come out split differently)."""
+    form = scatter_each if jax.default_backend() == "cpu" else scatter_stacked
+    return _segment_batch(form, values, ok, bad, group, shift, groups)
 
 
 Scatter = Callable[[str, Any, jax.Array, int, tuple[jax.Array, ...]], list[jax.Array]]
@@ -176,9 +172,11 @@ def _segment_batch(
     def slots(x: jax.Array) -> jax.Array:
         return x.reshape(sources, width)
 
-    # The count as a float beside the sum (exact to 2^24 entries a batch row), the min as
-    # the max of the negated values (negation is exact): one scatter each per kind.
-    kf, bsum = map(slots, scatter("add", 0, at, size, (jnp.ones_like(flat), flat)))
+    # The count as a float beside the sum (exact to 2^24 entries a batch row; `ok`, which
+    # is 1 wherever an entry is not dropped, keeps the channels split alike over a mesh),
+    # the min as the max of the negated values (negation is exact).
+    ones = ok.reshape(-1).astype(dt)
+    kf, bsum = map(slots, scatter("add", 0, at, size, (ones, flat)))
     bmax, neg_min = map(slots, scatter("max", -jnp.inf, at, size, (flat, -flat)))
     (nbad,) = map(slots, scatter("add", 0, slot, size, (bad.reshape(-1),)))
     k, bmin = kf.astype(jnp.int32), -neg_min
