@@ -2,7 +2,7 @@
 the episode rows as report rows (each metric, then one row per group)."""
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -135,17 +135,34 @@ def group_ids(rows: SpecRows, step_input: Any, num_envs: int) -> list[tuple[jax.
     return out
 
 
+class Segments(NamedTuple):
+    """The segment sources' batch (`[sources, E]`, `_stream.SegmentPlan`): their episode
+    values, which to fold, their non-finite counts, and each env's group index."""
+
+    values: jax.Array
+    ok: jax.Array
+    bad: jax.Array
+    group: jax.Array
+
+
 def by_group(
     rows: SpecRows, values: jax.Array, ok: jax.Array, bad: jax.Array, group_ids: list[jax.Array]
-) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Episode rows `[M, E]` as report rows: each metric over all envs, then (for a
-    grouped metric) once per group, masked to the envs in that group. One compare
-    per grouping; no work per group beyond the elementwise mask."""
+) -> tuple[tuple[jax.Array, jax.Array, jax.Array], Segments | None]:
+    """Episode rows `[M, E]` as the report rows folded as rows: each metric over all envs,
+    then (for a grouped metric that has rows per group) once per group, masked to the
+    envs in that group; and the segment sources' inputs (`Segments`; None without
+    segment rows). One compare per grouping; no work per group beyond the elementwise
+    mask."""
     if not rows.groupings:
-        return values, ok, bad
+        return (values, ok, bad), None
     src, kind, group = rows.report_rows
     # Row K of `ids` is 0 for every env: the overall rows match it as group 0.
     ids = jnp.concatenate([jnp.stack(group_ids), jnp.zeros_like(group_ids[0])[None]])
     match = jnp.take(ids, kind, axis=0) == jnp.asarray(group)[:, None]
     take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
-    return take(values), take(ok) & match, take(bad) * match.astype(jnp.int32)
+    dense = take(values), take(ok) & match, take(bad) * match.astype(jnp.int32)
+    if not rows.segment_sources:
+        return dense, None
+    s_src, s_kind = (np.asarray(a, np.int32) for a in zip(*rows.segment_sources))
+    pick = lambda a: jnp.take(a, s_src, axis=0)  # noqa: E731
+    return dense, Segments(pick(values), pick(ok), pick(bad), jnp.take(ids, s_kind, axis=0))

@@ -309,11 +309,11 @@ class Metrics:
             like(i, state.running.steps[0], f"the group indices of {where}")
             for i, where in _inputs.group_ids(self._rows, step_input, num_envs)
         ]
-        values, ok, bad = _inputs.by_group(self._rows, values, ok, bad, group_ids)
+        (values, ok, bad), segments = _inputs.by_group(self._rows, values, ok, bad, group_ids)
         # Materialized once (after the group split): without the barrier XLA recomputes
         # the episode values from the old accumulators inside each reduction, which makes
         # it copy them every step.
-        values, ok, bad = jax.lax.optimization_barrier((values, ok, bad))
+        values, ok, bad, segments = jax.lax.optimization_barrier((values, ok, bad, segments))
 
         def by_shard(a: jax.Array) -> jax.Array:
             # [M, E] -> [S, M, E/S]: shard s gets the s-th block of envs. With the env axis
@@ -335,8 +335,13 @@ class Metrics:
             shard_counts.append(jnp.sum(jnp.stack(out_of_range), axis=0, dtype=jnp.int32))
         counted = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
 
-        def fold(st, v, m, n, t, e):
-            return _stream.add_with_counts(plan, st, v, m, n, t, e, fused=shards == 1)
+        seg_plan = self._rows.ep_segments
+
+        def fold(st, v, m, n, t, e, g):
+            segments = None if g is None else (seg_plan, g)
+            return _stream.add_with_counts(
+                plan, st, v, m, n, t, e, fused=shards == 1, segments=segments
+            )
 
         args = (
             state.finished,
@@ -345,6 +350,7 @@ class Metrics:
             by_shard(bad),
             by_shard(counted),
             state.shard_counts,
+            None if segments is None else tuple(by_shard(a) for a in segments),
         )
         if shards == 1:
             # One shard: the plain fold (a vmap of size 1 still batches its scatters).

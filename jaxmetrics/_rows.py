@@ -52,8 +52,12 @@ class SpecRows:
     ep_rows: tuple[MetricSpec, ...]
     ep_row_groups: tuple[int | None, ...]  # per episode row, its grouping (None: none)
     ep_defined: tuple[MetricSpec, ...]  # report rows in definition order (the tag table's)
-    # Per report row: its episode row, its grouping (len(groupings): none) and group.
+    # Per report row folded as a row (every row but the segment rows): its episode row,
+    # its grouping (len(groupings): none) and group.
     report_rows: tuple[np.ndarray, np.ndarray, np.ndarray]
+    # Per segment source (`_stream.SegmentPlan`): its episode row and its grouping.
+    segment_sources: tuple[tuple[int, int], ...]
+    ep_segments: _stream.SegmentPlan | None  # None: every report row is folded as a row
     episode_plan: _episode.EpisodePlan
     ep_plan: _stream.StreamPlan | None
     lg_plan: _stream.StreamPlan | None
@@ -133,16 +137,32 @@ def build(
     # Report rows: each metric, then its groups; in definition order for the tag table.
     ep_defined = tuple(r for spec, g in zip(ep_specs, ep_groupings) for r in with_groups(spec, g))
     stream_rows = [r for i in order for r in with_groups(ep_specs[i], ep_groupings[i])]
-    # Per report row: its episode row, its grouping (len(groupings): none) and group.
+    # Per report row: its episode row, its grouping (len(groupings): none) and group. The
+    # group rows of a metric with period statistics only are segment rows: folded by
+    # segment reductions over the group index (`_stream.SegmentPlan`), not as rows.
     src, kind, group = [], [], []
+    sources: list[tuple[int, int]] = []
+    blocks: list[tuple[int, int]] = []
+    row = 0
     for r, k in enumerate(ep_row_groups):
         names = () if k is None else groupings[k].names
-        src += [r] * (1 + len(names))
-        kind += [len(groupings)] + [k] * len(names)  # type: ignore[list-item]
-        group += [0, *range(len(names))]
+        if k is not None and _period_only(ep_rows[r]):
+            sources.append((r, k))
+            blocks.append((row + 1, len(names)))
+            names_as_rows: tuple[str, ...] = ()
+        else:
+            names_as_rows = names
+        src += [r] * (1 + len(names_as_rows))
+        kind += [len(groupings)] + [k] * len(names_as_rows)  # type: ignore[list-item]
+        group += [0, *range(len(names_as_rows))]
+        row += 1 + len(names)
     report_rows = tuple(np.asarray(a, np.int32) for a in (src, kind, group))
     episode_plan = _episode.EpisodePlan.build([s.reduce for s in ep_rows], dt)
     ep_plan = _stream.StreamPlan.build(stream_rows, dt) if ep_specs else None
+    ep_segments = None
+    if blocks:
+        assert ep_plan is not None
+        ep_segments = _stream.SegmentPlan.build(ep_plan, tuple(blocks))
     lg_plan = _stream.StreamPlan.build(lg_specs, dt) if lg_specs else None
     lg_index = {s.name: i for i, s in enumerate(lg_specs)}
     ep_propagate = np.array([s.nonfinite == "propagate" for s in ep_rows], bool)
@@ -174,6 +194,8 @@ def build(
         ep_row_groups=ep_row_groups,
         ep_defined=ep_defined,
         report_rows=report_rows,
+        segment_sources=tuple(sources),
+        ep_segments=ep_segments,
         episode_plan=episode_plan,
         ep_plan=ep_plan,
         lg_plan=lg_plan,
@@ -183,6 +205,13 @@ def build(
         tags=tags,
         identity=spec,
     )
+
+
+def _period_only(spec: MetricSpec) -> bool:
+    """Whether a metric's report statistics are period statistics only: its group rows
+    need no ordered data per row (no EMA, window, histogram or sketch)."""
+    st = spec.stats
+    return st.ema is None and st.window is None and st.histogram is None and st.quantiles is None
 
 
 def _canonical(x: Any) -> Any:

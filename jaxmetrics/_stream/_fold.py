@@ -17,7 +17,8 @@ from .. import _count, _sketch
 from .._count import Count
 from .._numerics import kahan_add
 from .._sharding import gathered
-from . import _kernel
+from . import _kernel, _segments
+from ._segments import SegmentPlan
 from ._state import (
     INT32_MAX,
     HistGroup,
@@ -63,6 +64,7 @@ def add_with_counts(
     counts: Count,
     fused: bool = False,
     interpret: bool = False,
+    segments: tuple[SegmentPlan, tuple[jax.Array, ...]] | None = None,
 ) -> tuple[StreamState, Count]:
     """`add`, and `counts` (`[counts_width(plan, C)]`) plus the sum of each row of
     `counted[C, B]` (int32), in its first C entries. The sums are taken in the batch's own
@@ -72,7 +74,13 @@ def add_with_counts(
     spec has an EMA or a window and the batch fits it; histograms and sketches keep
     XLA's kernels); the caller passes it only for a batch that is not split over
     devices, which that kernel cannot be. `interpret` (with `fused`) runs that kernel on
-    any platform, in Pallas' interpret mode (slow: for tests)."""
+    any platform, in Pallas' interpret mode (slow: for tests).
+
+    `segments`, for a stream with segment rows (`_segments`): its `SegmentPlan` and the
+    segment sources' batch (values, ok, non-finite counts, group index, `[sources, B]`);
+    `values`, `mask` and `nonfinite` are then the batch of the other rows (the plan's
+    `dense` rows). Both halves' batch statistics are put in row order before the one
+    update of the per-row fields."""
     dt = plan.dtype
     width = counts.lo.shape[0]
     wt = weight_dtype(dt)
@@ -86,12 +94,25 @@ def add_with_counts(
         nonfinite = jnp.zeros(values.shape, jnp.int32)
     if plan.ema_rows or plan.windows or plan.hists or plan.sketches:
         values, mask = gathered(values), gathered(mask)
-    counted = jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
-    args = (plan, s, values, mask, nonfinite, shift, counted)
-    if (plan.ema_rows or plan.windows) and fused and _kernel.fits(mask.shape[1], dt):
-        folded = _fold_fused(*args, interpret)
+    folds = plan
+    if segments is None:
+        counted = jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
+        folded = _fold_rows(plan, s, values, mask, nonfinite, shift, counted, fused, interpret)
     else:
-        folded = _fold(*args)
+        sp, batch = segments
+        folds = sp.dense_plan
+        part = _segments.dense_state(sp, s)
+        rows_counted = jnp.pad(
+            counted, ((0, counts_width(folds, counted.shape[0]) - counted.shape[0]), (0, 0))
+        )
+        folded = _fold_rows(
+            folds, part, values, mask, nonfinite, part.mean, rows_counted, fused, interpret
+        )
+        grouped = _segments.segment_batch(
+            *(gathered(a) for a in batch), sp.groups, _segments.segment_rows(sp, shift)
+        )
+        joined = _segments.joined(sp, _kernel.Batch(*folded[0]), grouped, counted.shape[0], width)
+        folded = (joined, *folded[1:])
     stats, ema_data, window_data, hists, hist_steps = folded
     k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, counted_sums = stats
 
@@ -135,7 +156,7 @@ def add_with_counts(
         windows.append(Ring(data, pos, filled))
     sketches = tuple(
         _sketch.add(c, _sketch.slot(g, take_rows(g.rows, values), take_rows(g.rows, mask)))
-        for g, c in zip(plan.sketches, s.sketches)
+        for g, c in zip(folds.sketches, s.sketches)
     )
     new = s._replace(
         count=_count.add(s.count, k),
@@ -161,6 +182,15 @@ def add_with_counts(
     )
     packs = width // len(plan.rows) if plan.rows else 0
     return new, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, counted_sums))
+
+
+def _fold_rows(
+    plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, counted, fused, interpret
+):
+    """`_fold`, or where `fused` and the batch fits, `_fold_fused`."""
+    if (plan.ema_rows or plan.windows) and fused and _kernel.fits(mask.shape[1], plan.dtype):
+        return _fold_fused(plan, s, values, mask, nonfinite, shift, counted, interpret)
+    return _fold(plan, s, values, mask, nonfinite, shift, counted)
 
 
 def _ranked(plan: StreamPlan) -> tuple[int, ...]:

@@ -135,7 +135,9 @@ def _scenario_tables(name: str, c: Config, hlo_dir: str | None, profile: bool) -
             c.scale_repeats,
         )
     elif name == "groups":
-        yield _isolated.groups(list(c.group_counts), c.num_envs, c.scale_steps, c.scale_repeats)
+        yield from _isolated.groups(
+            list(c.group_counts), c.num_envs, c.scale_steps, c.scale_repeats, profile
+        )
     elif name == "flush":
         yield _flush_cost.flush(list(c.flush_envs), c.flush_repeats)
         yield _flush_cost.period_ends(c.period_envs, c.period_ends, c.period_every, c.flush_repeats)
@@ -250,7 +252,8 @@ def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace
     p.add_argument(
         "--profile",
         action="store_true",
-        help="with the isolated scenario: device time per kernel of the floor and full spec",
+        help="with the isolated scenario: device time per kernel of the floor and full spec; "
+        "with groups, of both group specs at the most groups",
     )
     p.add_argument("--note", default=None, help="free text stored in the JSON (e.g. the tree)")
     for f in dataclasses.fields(Config):

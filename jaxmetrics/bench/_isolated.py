@@ -137,9 +137,9 @@ def isolated(
 PROFILED = ("floor", "full")
 
 
-def _kernel_table(num_envs: int, steps: int, profiled: dict) -> Table:
+def _kernel_table(num_envs: int, steps: int, profiled: dict, name: str = "kernels") -> Table:
     t = Table(
-        "kernels",
+        name,
         f"Device time per kernel and step: {num_envs} envs, {steps}-step scan (one profiled call)",
         ["variant", "kernel", "us/step", "launches/step", "shape", "fuses"],
     )
@@ -249,52 +249,82 @@ def scaling(
     return [envs, terms, windows]
 
 
-def groups(group_list: list[int], num_envs: int, steps: int, repeats: int) -> Table:
-    """Per-group statistics: the full 10-term spec kept per group, against no groups."""
+GROUP_SPECS = (
+    ("full", "full"),
+    ("simple", "period stats"),
+)
+"""The specs of the per-group table: the bench's `random_spec` features, and their label."""
+
+
+def groups(
+    group_list: list[int], num_envs: int, steps: int, repeats: int, profile: bool = False
+) -> list[Table]:
+    """Per-group statistics: the full 10-term spec and its period statistics alone (every
+    group row a segment row), kept per group, each against itself without groups; with
+    `profile`, also the device time of each kernel of both specs at the most groups."""
     t = Table(
         "groups",
-        f"Per-group statistics ({num_envs} envs, full 10-term spec, {steps}-step scan)",
-        ["groups", "us/step", "x no groups", "compile s", "ops in loop", "state bytes"],
+        f"Per-group statistics ({num_envs} envs, 10 terms, {steps}-step scan)",
+        ["spec", "groups", "us/step", "x no groups", "compile s", "ops in loop", "state bytes"],
     )
     xs, dones = inputs(num_envs, steps)
     variants, infos, specs = [], {}, {}
-    for g in [0, *group_list]:
-        specs[g] = wl.random_spec(10, groups=g)
-        v, infos[g] = _prepare(
-            f"g{g}", _metrics_scan(specs[g]), specs[g].init(num_envs), xs, dones, None
-        )
-        variants.append(v)
+    counts = [0, *group_list]
+    for features, _ in GROUP_SPECS:
+        for g in counts:
+            name = f"{features}_g{g}"
+            specs[name] = wl.random_spec(10, features=features, groups=g)
+            v, infos[name] = _prepare(
+                name, _metrics_scan(specs[name]), specs[name].init(num_envs), xs, dones, None
+            )
+            variants.append(v)
     tm, last = measure(variants, repeats)
-    base = tm["g0"].median_s
-    for g in [0, *group_list]:
-        i = infos[g]
-        us = tm[f"g{g}"].median_s / steps * 1e6
-        t.add(
-            g,
-            us,
-            tm[f"g{g}"].median_s / base,
-            i["compile_s"],
-            _kernels(i["loop_ops"]),
-            i["state_bytes"],
-        )
+    for features, label in GROUP_SPECS:
+        base = tm[f"{features}_g0"].median_s
+        for g in counts:
+            name = f"{features}_g{g}"
+            i = infos[name]
+            t.add(
+                label,
+                g,
+                tm[name].median_s / steps * 1e6,
+                tm[name].median_s / base,
+                i["compile_s"],
+                _kernels(i["loop_ops"]),
+                i["state_bytes"],
+            )
     most = max(group_list)
-    host = specs[most].to_host(specs[most].compute(last[f"g{most}"]))
-    prefix = specs[most].prefixes["episode"]
-    split = all(
-        sum(host[f"{prefix}/m{i}/g{k}/count"] for k in range(most)) == host[f"{prefix}/m{i}/count"]
-        for i in range(10)
-    )
+    prefix = specs[f"full_g{most}"].prefixes["episode"]
+    split = True
+    for features, _ in GROUP_SPECS:
+        m = specs[f"{features}_g{most}"]
+        host = m.to_host(m.compute(last[f"{features}_g{most}"]))
+        split = split and all(
+            sum(host[f"{prefix}/m{i}/g{k}/count"] for k in range(most))
+            == host[f"{prefix}/m{i}/count"]
+            for i in range(10)
+        )
     t.data = {
         "timings": {k: vars(v) for k, v in tm.items()},
-        "loop_ops": {str(k): i["loop_ops"] for k, i in infos.items()},
+        "loop_ops": {k: i["loop_ops"] for k, i in infos.items()},
         "check": {"groups": most, "group_counts_sum_to_total": split},
     }
     t.notes.append(
         f"Each env is in a random group on every step. Check: with {most} groups every "
-        f"metric's group /counts sum to its overall /count: {split}."
+        f"metric's group /counts sum to its overall /count (both specs): {split}."
     )
     t.notes.append(
-        "A grouped metric is one report row per group plus its overall row: the per-step "
-        "work grows with rows x envs (elementwise, fused), the state with rows."
+        "The group rows of a metric with period statistics only (count, sum, mean, std, "
+        "min, max) are segment reductions over the group index, one pass over the envs; "
+        "a metric with an EMA, a window, a histogram or quantiles keeps one row per group, "
+        "whose per-step work grows with rows x envs. 'period stats' is the spec with "
+        "simple statistics only (mixed reductions)."
     )
-    return t
+    if not profile:
+        return [t]
+    by_name = {v.name: v for v in variants}
+    profiled = {
+        f"{features}, {most} groups": (by_name[f"{features}_g{most}"], infos[f"{features}_g{most}"])
+        for features, _ in GROUP_SPECS
+    }
+    return [t, _kernel_table(num_envs, steps, profiled, "group_kernels")]

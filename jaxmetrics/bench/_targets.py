@@ -45,12 +45,18 @@ def _scaling(t: Table, envs: Table, tables: Sequence[Table], backend: str) -> No
 
 
 def _groups(t: Table, gr: Table, tables: Sequence[Table], backend: str) -> None:
-    most = max(gr.rows, key=lambda r: r[0])
-    t.add(
-        f"per-group statistics, most groups <= {FLOOR_RATIO}x no groups (GPU)",
-        f"{most[2]:.2f}x at {most[0]} groups",
-        most[2] <= FLOOR_RATIO if backend != "cpu" else None,
-    )
+    col = {c: k for k, c in enumerate(gr.columns)}
+    by_spec: dict[str, list[list]] = {}
+    for r in gr.rows:
+        by_spec.setdefault(r[col["spec"]] if "spec" in col else "full", []).append(r)
+    for spec, rows in by_spec.items():
+        most = max(rows, key=lambda r: r[col["groups"]])
+        ratio, groups = most[col["x no groups"]], most[col["groups"]]
+        t.add(
+            f"per-group statistics ({spec}), most groups <= {FLOOR_RATIO}x no groups (GPU)",
+            f"{ratio:.2f}x at {groups} groups",
+            ratio <= FLOOR_RATIO if backend != "cpu" else None,
+        )
 
 
 def _end_to_end(t: Table, e2e: Table, tables: Sequence[Table], backend: str) -> None:

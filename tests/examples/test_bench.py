@@ -62,6 +62,7 @@ SCENARIOS = {
     "scaling_terms",
     "scaling_window",
     "groups",
+    "group_kernels",
     "flush",
     "period_ends",
     "end_to_end",
@@ -130,10 +131,15 @@ def test_rows_cover_the_requested_sizes(result):
     # two windowed rows; a slot holds a float32 value and its uint32 arrival step
     assert wstate[1] - wstate[0] == 2 * (16 - 4) * (4 + 4)
     assert len({r[2] for r in sc["flush"]["rows"]}) == 1
-    assert [r[0] for r in sc["groups"]["rows"]] == [0, 4]
+    assert [r[:2] for r in sc["groups"]["rows"]] == [
+        ["full", 0],
+        ["full", 4],
+        ["period stats", 0],
+        ["period stats", 4],
+    ]
     assert sc["groups"]["data"]["check"] == {"groups": 4, "group_counts_sum_to_total": True}
-    gstate = [r[5] for r in sc["groups"]["rows"]]  # 1 + g report rows per metric
-    assert gstate[0] < gstate[1]
+    gstate = [r[6] for r in sc["groups"]["rows"]]  # 1 + g report rows per metric
+    assert gstate[0] < gstate[1] and gstate[2] < gstate[3]
     assert [r[0] for r in sc["period_ends"]["rows"]] == ["reset only", "emit", "history"]
     e2e = [r[0] for r in sc["end_to_end"]["rows"]]
     assert len(e2e) == 4 and e2e[0] == "bare rollout" and "empty spec" in e2e[1]
@@ -266,7 +272,10 @@ def test_targets_table_judges_what_ran(result):
     assert rows["empty spec indistinguishable from bare"][2] is True
     assert rows["bytes to host flat in num_envs"][2] is True
     # The GPU's per-group bound is not judged on a CPU; the callback logger is no target.
-    assert rows["per-group statistics, most groups <= 1.5x no groups (GPU)"][2] is None
+    for spec in ("full", "period stats"):
+        assert (
+            rows[f"per-group statistics ({spec}), most groups <= 1.5x no groups (GPU)"][2] is None
+        )
     assert not any("100x" in target for target in rows)
 
 
@@ -398,7 +407,7 @@ def test_render_is_the_cli_s_render_step(tmp_path):
     (tmp_path / "benchmarks.md").write_text(stale)
     assert bench.main(["--render", str(tmp_path / "benchmarks.md")]) == []
     out = (tmp_path / "benchmarks.md").read_text()
-    assert "STALE" not in out and "3.30x at 64 groups" in out  # the GPU file's target row
+    assert "STALE" not in out and "3.84x at 64 groups" in out  # the GPU file's target row
     assert out == _render.render(stale, _render.load(str(tmp_path / "benchmarks")))
 
 
