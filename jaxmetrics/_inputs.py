@@ -146,22 +146,28 @@ class Segments(NamedTuple):
 
 
 def by_group(
-    rows: SpecRows, values: jax.Array, ok: jax.Array, bad: jax.Array, group_ids: list[jax.Array]
+    rows: SpecRows,
+    values: jax.Array,
+    ok: jax.Array,
+    bad: jax.Array,
+    group_ids: list[jax.Array],
+    segmented: bool,
 ) -> tuple[tuple[jax.Array, jax.Array, jax.Array], Segments | None]:
     """Episode rows `[M, E]` as the report rows folded as rows: each metric over all envs,
     then (for a grouped metric that has rows per group) once per group, masked to the
-    envs in that group; and the segment sources' inputs (`Segments`; None without
-    segment rows). One compare per grouping; no work per group beyond the elementwise
-    mask."""
+    envs in that group; and, where `segmented`, the segment sources' inputs (`Segments`;
+    None without segment rows), whose group rows are then not among the rows. One
+    compare per grouping; no work per group beyond the elementwise mask."""
     if not rows.groupings:
         return (values, ok, bad), None
-    src, kind, group = rows.report_rows
+    segmented = segmented and bool(rows.segment_sources)
+    src, kind, group = rows.report_rows if segmented else rows.every_row
     # Row K of `ids` is 0 for every env: the overall rows match it as group 0.
     ids = jnp.concatenate([jnp.stack(group_ids), jnp.zeros_like(group_ids[0])[None]])
     match = jnp.take(ids, kind, axis=0) == jnp.asarray(group)[:, None]
     take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
     dense = take(values), take(ok) & match, take(bad) * match.astype(jnp.int32)
-    if not rows.segment_sources:
+    if not segmented:
         return dense, None
     s_src, s_kind = (np.asarray(a, np.int32) for a in zip(*rows.segment_sources))
     pick = lambda a: jnp.take(a, s_src, axis=0)  # noqa: E731

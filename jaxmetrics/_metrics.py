@@ -309,7 +309,11 @@ class Metrics:
             like(i, state.running.steps[0], f"the group indices of {where}")
             for i, where in _inputs.group_ids(self._rows, step_input, num_envs)
         ]
-        (values, ok, bad), segments = _inputs.by_group(self._rows, values, ok, bad, group_ids)
+        segments_plan = self._rows.ep_segments
+        segmented = segments_plan is not None and segments_plan.serves(num_envs)
+        (values, ok, bad), segments = _inputs.by_group(
+            self._rows, values, ok, bad, group_ids, segmented
+        )
         # Materialized once (after the group split): without the barrier XLA recomputes
         # the episode values from the old accumulators inside each reduction, which makes
         # it copy them every step.
@@ -335,10 +339,8 @@ class Metrics:
             shard_counts.append(jnp.sum(jnp.stack(out_of_range), axis=0, dtype=jnp.int32))
         counted = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
 
-        seg_plan = self._rows.ep_segments
-
         def fold(st, v, m, n, t, e, g):
-            segments = None if g is None else (seg_plan, g)
+            segments = None if g is None else (segments_plan, g)
             return _stream.add_with_counts(
                 plan, st, v, m, n, t, e, fused=shards == 1, segments=segments
             )

@@ -52,8 +52,9 @@ class SpecRows:
     ep_rows: tuple[MetricSpec, ...]
     ep_row_groups: tuple[int | None, ...]  # per episode row, its grouping (None: none)
     ep_defined: tuple[MetricSpec, ...]  # report rows in definition order (the tag table's)
-    # Per report row folded as a row (every row but the segment rows): its episode row,
-    # its grouping (len(groupings): none) and group.
+    # Per report row: its episode row, its grouping (len(groupings): none) and group.
+    every_row: tuple[np.ndarray, np.ndarray, np.ndarray]
+    # The same for the rows folded as rows where segment rows are (every row but those).
     report_rows: tuple[np.ndarray, np.ndarray, np.ndarray]
     # Per segment source (`_stream.SegmentPlan`): its episode row and its grouping.
     segment_sources: tuple[tuple[int, int], ...]
@@ -137,26 +138,31 @@ def build(
     # Report rows: each metric, then its groups; in definition order for the tag table.
     ep_defined = tuple(r for spec, g in zip(ep_specs, ep_groupings) for r in with_groups(spec, g))
     stream_rows = [r for i in order for r in with_groups(ep_specs[i], ep_groupings[i])]
-    # Per report row: its episode row, its grouping (len(groupings): none) and group. The
-    # group rows of a metric with period statistics only are segment rows: folded by
-    # segment reductions over the group index (`_stream.SegmentPlan`), not as rows.
-    src, kind, group = [], [], []
+    # Per report row: its episode row, its grouping (len(groupings): none) and group; for
+    # every row, and for the rows folded as rows where the group rows of a metric with
+    # period statistics only are segment rows instead: folded by segment reductions over
+    # the group index (`_stream.SegmentPlan`).
+    every: tuple[list[int], list[int], list[int]] = ([], [], [])
+    as_rows: tuple[list[int], list[int], list[int]] = ([], [], [])
     sources: list[tuple[int, int]] = []
     blocks: list[tuple[int, int]] = []
     row = 0
     for r, k in enumerate(ep_row_groups):
         names = () if k is None else groupings[k].names
-        if k is not None and _period_only(ep_rows[r]):
+        segmented = k is not None and _period_only(ep_rows[r])
+        if segmented:
             sources.append((r, k))
             blocks.append((row + 1, len(names)))
-            names_as_rows: tuple[str, ...] = ()
-        else:
-            names_as_rows = names
-        src += [r] * (1 + len(names_as_rows))
-        kind += [len(groupings)] + [k] * len(names_as_rows)  # type: ignore[list-item]
-        group += [0, *range(len(names_as_rows))]
+        for (src, kind, group), n in (
+            (every, len(names)),
+            (as_rows, 0 if segmented else len(names)),
+        ):
+            src += [r] * (1 + n)
+            kind += [len(groupings)] + [k] * n  # type: ignore[list-item]
+            group += [0, *range(n)]
         row += 1 + len(names)
-    report_rows = tuple(np.asarray(a, np.int32) for a in (src, kind, group))
+    every_row = tuple(np.asarray(a, np.int32) for a in every)
+    report_rows = tuple(np.asarray(a, np.int32) for a in as_rows)
     episode_plan = _episode.EpisodePlan.build([s.reduce for s in ep_rows], dt)
     ep_plan = _stream.StreamPlan.build(stream_rows, dt) if ep_specs else None
     ep_segments = None
@@ -193,6 +199,7 @@ def build(
         ep_rows=ep_rows,
         ep_row_groups=ep_row_groups,
         ep_defined=ep_defined,
+        every_row=every_row,
         report_rows=report_rows,
         segment_sources=tuple(sources),
         ep_segments=ep_segments,

@@ -27,6 +27,11 @@ import numpy as np
 from ._kernel import Batch
 from ._state import StreamPlan, StreamState
 
+ACCELERATOR_MIN_ENTRIES = 2**22
+"""Segment rows x envs from which an accelerator folds group rows as segments."""
+ACCELERATOR_MIN_GROUPS = 64
+"""Groups per source (on average) from which an accelerator folds them as segments."""
+
 
 @dataclasses.dataclass(frozen=True)
 class SegmentPlan:
@@ -46,6 +51,25 @@ class SegmentPlan:
         segment = {first + j for first, n in blocks for j in range(n)}
         dense = tuple(r for r in range(len(plan.rows)) if r not in segment)
         return cls(blocks, dense, StreamPlan.build([plan.rows[r] for r in dense], plan.dtype))
+
+    @property
+    def rows(self) -> int:
+        """The segment rows: every source's groups."""
+        return sum(n for _, n in self.blocks)
+
+    def serves(self, num_envs: int) -> bool:
+        """Whether a batch of `num_envs` envs folds the segment rows by segment reductions
+        here (at trace time), or as masked rows like the others.
+
+        On a CPU a masked row costs a pass over the envs, so segments always win. On an
+        accelerator one masked reduction reads every row in one kernel, while the segment
+        path's scatters are kernels of their own whose atomic adds contend when few
+        groups share the envs; measured on an H100 (docs/benchmarks.md, "Per-group
+        statistics"), segments won only with many groups over a large batch."""
+        if jax.default_backend() == "cpu":
+            return True
+        many = self.rows >= ACCELERATOR_MIN_GROUPS * len(self.blocks)
+        return many and self.rows * num_envs >= ACCELERATOR_MIN_ENTRIES
 
     @property
     def width(self) -> int:

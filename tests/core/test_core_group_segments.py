@@ -11,6 +11,7 @@ of range joins no group (only the overall row and `Counters/ungrouped`).
 
 import math
 import re
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +25,7 @@ from reference import SIMPLE_STATS, RefStream, episode_value
 from test_core_reductions import assert_stat_close
 
 import jaxmetrics as jm
+from jaxmetrics._stream import SegmentPlan
 from jaxmetrics.bench._hlo import COLLECTIVES
 
 E, T = 12, 10
@@ -155,6 +157,7 @@ def _scan(metrics):
 
 
 _RUN = _scan(METRICS)
+_RUN_MASKED = _scan(METRICS)  # traced with the group rows folded as masked rows
 
 grid = st.integers(-800, 800).map(lambda k: k / 8 + 1 / 16)
 # Group indices: mostly in range, some just out of it, some far out (the int32 extremes).
@@ -192,7 +195,7 @@ def rollouts(draw):
     )
 
 
-def _check(state, xs, g1, g2, dones, flushes, sharding=None):
+def _check(state, xs, g1, g2, dones, flushes, sharding=None, run=_RUN):
     inputs = tuple(map(jnp.asarray, (xs, g1, g2, dones, flushes)))
     if sharding is not None:  # the env axis (last) split like the state's envs
         mesh = sharding.mesh
@@ -204,7 +207,7 @@ def _check(state, xs, g1, g2, dones, flushes, sharding=None):
             + inputs[4:]
         )
     with np.errstate(all="ignore"):
-        reports = jax.device_get(_RUN(state, *inputs))
+        reports = jax.device_get(run(state, *inputs))
     ref = Reference(E)
     for t in range(T):
         ref.step(xs[t], g1[t], g2[t], dones[t])
@@ -227,6 +230,38 @@ def test_group_period_statistics_of_a_sharded_state_match_the_reference(data):
     mesh = jax.make_mesh((2,), ("env",), devices=jax.devices()[:2])
     sharding = NamedSharding(mesh, P("env"))
     _check(METRICS.init(E, sharding=sharding), *data, sharding=sharding)
+
+
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(rollouts())
+def test_group_period_statistics_as_masked_rows_match_the_reference(data):
+    # An accelerator folds the group rows of a small batch as masked rows
+    # (`SegmentPlan.serves`): the same numbers as the segments.
+    with mock.patch.object(SegmentPlan, "serves", lambda plan, num_envs: False):
+        _check(METRICS.init(E), *data, run=_RUN_MASKED)
+
+
+def test_segments_serve_every_batch_on_cpu_and_large_ones_elsewhere(monkeypatch):
+    plan = METRICS._rows.ep_segments
+    assert plan is not None and plan.rows > 0
+
+    def scatters(serves: bool) -> int:
+        g = jnp.zeros((E,), jnp.int32)
+        step = {"x": jnp.zeros((len(TERMS), E), jnp.float32), "g1": g, "g2": g}
+        with mock.patch.object(SegmentPlan, "serves", lambda p, n: serves):
+            jaxpr = jax.make_jaxpr(METRICS.update)(METRICS.init(E), step, g > 0)
+        return str(jaxpr).count("scatter")
+
+    assert scatters(True) > scatters(False)  # the switch picks the fold
+    assert plan.serves(1)  # this suite runs on the CPU
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    seg = jm._stream._segments
+    limit = seg.ACCELERATOR_MIN_ENTRIES
+    assert plan.rows < seg.ACCELERATOR_MIN_GROUPS * len(plan.blocks)  # few groups: masked
+    assert not plan.serves(1) and not plan.serves(limit)
+    monkeypatch.setattr(seg, "ACCELERATOR_MIN_GROUPS", 1)
+    assert not plan.serves(-(-limit // plan.rows) - 1)
+    assert plan.serves(-(-limit // plan.rows))
 
 
 def _shapes(hlo_text: str) -> list[tuple[int, ...]]:
