@@ -407,7 +407,11 @@ def test_render_is_the_cli_s_render_step(tmp_path):
     (tmp_path / "benchmarks.md").write_text(stale)
     assert bench.main(["--render", str(tmp_path / "benchmarks.md")]) == []
     out = (tmp_path / "benchmarks.md").read_text()
-    assert "STALE" not in out and "3.84x at 64 groups" in out  # the GPU file's target row
+    groups = docs["h100_groups.json"]["scenarios"]["groups"]
+    col = groups["columns"].index("x no groups")
+    full = max((r for r in groups["rows"] if r[0] == "full"), key=lambda r: r[1])
+    assert "STALE" not in out  # the GPU file's target row, from its table:
+    assert f"{full[col]:.2f}x at {full[1]} groups" in out
     assert out == _render.render(stale, _render.load(str(tmp_path / "benchmarks")))
 
 
