@@ -22,11 +22,11 @@ Each variant runs in a fresh process per `--xla-flags` setting (XLA reads its fl
 
 import argparse
 import json
-import os
 import platform
-import subprocess
 import sys
 import time
+
+from ._timing import in_fresh_process
 
 VARIANTS = ("bare", "cond_pure", "cond_callback", "cond_unordered", "where")
 
@@ -103,16 +103,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = []
     for flags in ["", *(a.xla_flags or ())]:
-        env = {
-            **os.environ,
-            "XLA_FLAGS": " ".join(filter(None, (os.environ.get("XLA_FLAGS"), flags))),
-        }
         args = [
             f"--{k}={v}" for k, v in zip(("kernels", "envs", "steps", "period", "repeats"), sizes)
         ]
-        cmd = [sys.executable, "-m", "jaxmetrics.bench._cond_sync", "--child", *args]
-        done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=True)
-        us = json.loads(done.stdout.strip().splitlines()[-1])
+        us = in_fresh_process("jaxmetrics.bench._cond_sync", args, flags)
         rows.append({"xla_flags": flags, "us_per_step": us})
         cells = " ".join(f"{v}={us[v]:.1f}" for v in VARIANTS)
         print(f"{flags or '(default flags)'}: {cells} us/step", flush=True)

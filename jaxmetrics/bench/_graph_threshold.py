@@ -13,11 +13,10 @@ threshold's, not the update's.
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 
 from . import _loaded
+from ._timing import in_fresh_process
 
 SIZES = ("num_envs", "features", "terms", "envs", "steps", "repeats")
 
@@ -86,10 +85,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     runs = []
     for flags in ["", *(a.xla_flags or ())]:
-        env = {
-            **os.environ,
-            "XLA_FLAGS": " ".join(filter(None, (os.environ.get("XLA_FLAGS"), flags))),
-        }
         args = [
             f"--num-envs={a.num_envs}",
             f"--features={','.join(a.features)}",
@@ -98,11 +93,7 @@ def main(argv: list[str] | None = None) -> int:
             f"--steps={a.steps}",
             f"--repeats={a.repeats}",
         ]
-        cmd = [sys.executable, "-m", "jaxmetrics.bench._graph_threshold", "--child", *args]
-        done = subprocess.run(cmd, env=env, capture_output=True, text=True)
-        if done.returncode:
-            raise SystemExit(f"{flags or '(default flags)'}: {done.stderr[-3000:]}")
-        rows = json.loads(done.stdout.strip().splitlines()[-1])
+        rows = in_fresh_process("jaxmetrics.bench._graph_threshold", args, flags)
         runs.append({"xla_flags": flags, "rows": rows})
         for r in rows:
             print(
