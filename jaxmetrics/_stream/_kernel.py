@@ -98,9 +98,12 @@ class EmaIn(NamedTuple):
     ema_off: jax.Array
 
 
-def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int, grouped: bool):
+def _kernel(
+    *refs, ema: bool, rings: tuple[int, ...], packs: int, counted: bool, batch: int, grouped: bool
+):
     """One chunk of a batch row (`chunking`); `rings` are the ring sizes, `packs` the
-    counted rows per batch row. `table` holds the row's static ints (`Table`); `counts`
+    counted rows per batch row (`counted`: read from a counted input; else none has
+    any). `table` holds the row's static ints (`Table`); `counts`
     (past one chunk) the row's masked-in entries per chunk.
 
     The row is read from its source row of the batch (`Selected`), with its mask built
@@ -123,7 +126,7 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int, gr
     chunk, n_chunks = chunking(batch)
     if n_chunks > 1:
         counts_ref, *refs = refs
-    if packs:
+    if counted:
         counted_ref, *refs = refs
     if ema:
         w_ref, eoff_ref, *refs = refs
@@ -154,8 +157,10 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int, gr
             match = (kind < 0) | mine
             m = m & match
             bad = bad * match.astype(bad.dtype)
-        counted = [at(counted_ref, jnp.maximum(c, 0), full & (c >= 0)) for c in counted_rows]
-        return [m, x, bad, *counted]
+        if not counted:
+            return [m, x, bad, *(jnp.zeros((1, n), jnp.int32) for _ in counted_rows)]
+        sums = [at(counted_ref, jnp.maximum(c, 0), full & (c >= 0)) for c in counted_rows]
+        return [m, x, bad, *sums]
 
     def load(j):
         start = min(j * block, chunk - block)
@@ -360,7 +365,7 @@ def fold(
         args.append((batch.ids, whole(batch.ids)))
     if n_chunks > 1:
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
-    if packs:
+    if packs and counted.shape[0]:
         args.append((counted, whole(counted)))
     if ema is not None:
         args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
@@ -378,6 +383,7 @@ def fold(
         ema=ema is not None,
         rings=tuple(r.data.shape[1] for r in rings),
         packs=packs,
+        counted=bool(packs and counted.shape[0]),
         batch=width,
         grouped=batch.grouped,
     )

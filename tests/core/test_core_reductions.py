@@ -466,7 +466,9 @@ def check_fused_kernel(rows, batch, size, seed, groups=0):
         kind = np.tile(np.r_[-1, np.ones(groups, int)], sources)
         group = np.tile(np.r_[0, np.arange(groups)], sources)
         rows = len(src)
-    match = (kind[:, None] < 0) | (ids[np.maximum(kind, 0)] == group[:, None])
+    match = np.ones((rows, batch), bool)
+    if groups:
+        match = (kind[:, None] < 0) | (ids[np.maximum(kind, 0)] == group[:, None])
     mask, values, nonfinite = ok[src] & match, x[src], flags[src] * match
     packs = int(rng.integers(0, 3))
     counted = rng.integers(0, 3, (rng.integers(max(0, rows * packs - 1), rows * packs + 1), batch))
