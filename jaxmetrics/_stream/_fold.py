@@ -446,18 +446,13 @@ def _fold(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, coun
     stats = _kernel.Batch(
         *_batch(values, mask, nonfinite, shift, weight_dtype(plan.dtype), ema_in, counted)
     )
-    return (
-        stats,
-        ema_data,
-        window_data,
-        *_hists_add(plan, s, Selected.every(values, mask, nonfinite)),
-    )
+    return stats, ema_data, window_data, *_hists_add(plan, s, values, mask)
 
 
-def _hists_add(plan: StreamPlan, s: StreamState, batch: Selected):
-    """Each histogram's counts with the rows `batch` selects added, and its `hist_steps`."""
+def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
+    """Each histogram's counts with the batch added, and its `hist_steps`."""
     return _pairs(
-        _hist_add(g, h, z, *batch.take(g.rows).dense()[:2], plan.dtype)
+        _hist_add(g, h, z, take_rows(g.rows, values), take_rows(g.rows, mask), plan.dtype)
         for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
     )
 
@@ -492,7 +487,11 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
         )
         data = iter(data)
         ema_data = tuple(next(data) if r.size else r.data for r in s.ema_rings)
-        return stats, ema_data, tuple(data), *_hists_add(plan, s, batch)
+        hists = _pairs(
+            _hist_add_selected(g, h, z, batch, plan.dtype)
+            for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
+        )
+        return stats, ema_data, tuple(data), *hists
 
     def reference(s, batch, shift, counted):
         return _fold(plan, s, *batch.dense(), shift, _counted_rows(plan, counted))
@@ -521,14 +520,50 @@ def slot_counts_compare(slot: jax.Array, into: jax.Array) -> jax.Array:
     return into + jnp.sum(slot[:, None, :] == bins, axis=2, dtype=jnp.int32)
 
 
+def _hist_slot(bins: int, values, mask, lo, hi) -> jax.Array:
+    """Each value's histogram slot (0: under `lo`, `bins + 1`: over `hi`), or `bins + 2`
+    (no slot) where not `mask` or NaN."""
+    t = jnp.floor((values - lo) / (hi - lo) * bins)
+    inner = jnp.clip(jnp.nan_to_num(t), 0, bins - 1).astype(jnp.int32) + 1
+    slot = jnp.where(values < lo, 0, jnp.where(values > hi, bins + 1, inner))
+    return jnp.where(mask & ~jnp.isnan(values), slot, bins + 2)
+
+
+def _hist_add_selected(g: HistGroup, h: Count, zero: jax.Array, batch: Selected, dt):
+    """`_hist_add` of the histogram's rows that `batch` selects (`g.rows`), on a CUDA GPU:
+    each source row is read once per grouping it is selected by (once more for its row
+    of every entry), each entry scattered into the row of its group, where the rows as
+    arrays would be a masked copy of the source per group, each scattered whole. The
+    rows are distinct selections (a spec's rows are)."""
+    sel = batch.take(g.rows)
+    if not sel.grouped:
+        return _hist_add(g, h, zero, *sel.dense()[:2], dt)
+    pairs = sorted(set(zip(sel.src, sel.kind)))
+    width = max(sel.group) + 1
+    n = sel.rows
+    # Per (source, grouping) and group: the histogram row (n: none).
+    lut = np.full((len(pairs), width), n, np.int32)
+    for r, (src, kind, group) in enumerate(zip(sel.src, sel.kind, sel.group)):
+        lut[pairs.index((src, kind)), group if kind >= 0 else 0] = r
+    src, kind = (np.array(a, np.int32) for a in zip(*pairs))
+    k = sel.ids.shape[0]
+    ids = jnp.concatenate([sel.ids, jnp.zeros_like(sel.ids[:1])])  # row K: 0, every entry
+    gid = jnp.take(ids, np.where(kind < 0, k, kind), axis=0)
+    inside = (gid >= 0) & (gid < width)
+    at = jnp.asarray(lut)[np.arange(len(pairs))[:, None], jnp.clip(gid, 0, width - 1)]
+    row = jnp.where(inside, at, n)
+    lo, hi = (jnp.asarray((*bound, 0.0), dt)[row] for bound in (g.lo, g.hi))
+    values = jnp.take(sel.values, src, axis=0)
+    ok = jnp.take(sel.ok, src, axis=0) & (row < n)
+    inc = zero.at[row, _hist_slot(g.bins, values, ok, lo, hi)].add(1, mode="drop")
+    return _count.add(h, inc), jnp.where(inc < 0, inc, 0)
+
+
 def _hist_add(g: HistGroup, h: Count, zero: jax.Array, values, mask, dt):
     """`h` with the batch counted in, and `zero` (`hist_steps`) as it was."""
     lo = jnp.asarray(g.lo, dt)[:, None]
     hi = jnp.asarray(g.hi, dt)[:, None]
-    t = jnp.floor((values - lo) / (hi - lo) * g.bins)
-    inner = jnp.clip(jnp.nan_to_num(t), 0, g.bins - 1).astype(jnp.int32) + 1
-    slot = jnp.where(values < lo, 0, jnp.where(values > hi, g.bins + 1, inner))
-    slot = jnp.where(mask & ~jnp.isnan(values), slot, g.bins + 2)  # matches no bin
+    slot = _hist_slot(g.bins, values, mask, lo, hi)
     # A scatter-add into `zero` in place: cheaper than compare-and-count on CPU and CUDA
     # (XLA does not fuse the compare into the reduction). TPUs scatter slowly: there,
     # compare and count.
