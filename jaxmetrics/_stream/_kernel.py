@@ -12,6 +12,9 @@ and the weighted sum follow, and the ring slots are written in place (the rings 
 aliased to the outputs; other rows never touch a row's slots). With the full spec a step
 then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
 
+A group row (`_stream.Selected`) is read from its metric's row of the batch and the group
+index, its mask built as it is loaded; the batch is not copied per group.
+
 A row longer than `ONE_PROGRAM` is folded by one program per chunk of it, so that the
 GPU's multiprocessors share the batch: one small XLA reduction first counts each chunk's
 masked-in entries, from which a chunk's program knows how many of the row's arrivals
@@ -23,6 +26,7 @@ check that both agree (the kernel in Pallas' interpret mode).
 """
 
 import functools
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -113,13 +117,15 @@ def _kernel(
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
     blocks (`blocking`), the last ending at the row's end with the entries already
     covered masked out, so that no load reaches past the row (Pallas' interpret mode
-    cannot). The blocks stay in registers for two passes: the first sums what needs no
-    arrival rank (the count among them, which the ranks need), the second takes the
-    ranks, the moments around the first pass's mean, the EMA's weighted sum and the ring
-    writes. A chunk's ranks add the row's entries in later chunks (from `counts`), and
-    its EMA weights and ring slots follow from those global ranks. Its mean deviation is
-    also written off a pivot that every chunk of the row shares (the row's first value),
-    so that the chunks' means combine without the rounding of means far from zero."""
+    cannot). The mask, flags and counted rows are read first and counted; a chunk with
+    masked-in entries then reads its values and makes two passes over them: the first
+    sums what needs no arrival rank, the second takes the ranks, the moments around the
+    first pass's mean, the EMA's weighted sum and the ring writes. A chunk without any
+    (at most steps, most chunks of group rows) skips both. A chunk's ranks add the row's
+    entries in later chunks (from `counts`), and its EMA weights and ring slots follow
+    from those global ranks. Its mean deviation is also written off a pivot that every
+    chunk of the row shares (the row's first value), so that the chunks' means combine
+    without the rounding of means far from zero."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
@@ -140,9 +146,9 @@ def _kernel(
     src, kind, group = entry(Table.SRC), entry(Table.KIND), entry(Table.GROUP)
     counted_rows = [entry(Table.COUNTED + p) for p in range(packs)]
 
-    def read(start, n: int, fresh) -> list[jax.Array]:
-        """The row's mask, values, non-finite flags and counted rows at `n` entries from
-        `start`, those not `fresh` (None: all are) masked out."""
+    def read(start, n: int, fresh) -> tuple[list[jax.Array], Callable[[], jax.Array]]:
+        """The row's mask, non-finite flags and counted rows at `n` entries from `start`,
+        those not `fresh` (None: all are) masked out, and what reads its values there."""
         cols = pl.ds(start, n)
         full = jnp.ones((1, n), jnp.bool_) if fresh is None else fresh
 
@@ -151,16 +157,17 @@ def _kernel(
                 return ref[pl.ds(row, 1), cols]
             return plt.load(ref.at[pl.ds(row, 1), cols], mask=where, other=jnp.zeros((), ref.dtype))
 
-        m, x, bad = at(m_ref, src), at(x_ref, src), at(bad_ref, src)
+        m, bad = at(m_ref, src), at(bad_ref, src)
+        values = functools.partial(at, x_ref, src)
         if grouped:
             mine = at(ids_ref, jnp.maximum(kind, 0)) == group
             match = (kind < 0) | mine
             m = m & match
             bad = bad * match.astype(bad.dtype)
         if not counted:
-            return [m, x, bad, *(jnp.zeros((1, n), jnp.int32) for _ in counted_rows)]
+            return [m, bad, *(jnp.zeros((1, n), jnp.int32) for _ in counted_rows)], values
         sums = [at(counted_ref, jnp.maximum(c, 0), full & (c >= 0)) for c in counted_rows]
-        return [m, x, bad, *sums]
+        return [m, bad, *sums], values
 
     def load(j):
         start = min(j * block, chunk - block)
@@ -193,43 +200,41 @@ def _kernel(
         later = row_sum(jnp.where(later_chunks, counts, 0))
         row_total = row_sum(counts)
 
-    def blocks(body, init, n_refs):
-        """`body(*the first n_refs of a block's mask, values, flags, counted..., carry)`
+    def blocks(body, init, *per_block):
+        """`body(*a block's mask, flags, counted..., *its entries of per_block, carry)`
         folded over the chunk's blocks."""
-        for block_values in loaded:
-            init = body(*block_values[:n_refs], init)
+        for j, (marks, _) in enumerate(loaded):
+            init = body(*marks, *(b[j] for b in per_block), init)
         return init
 
     shift = shift_ref[...]
 
-    def first(m, x, bad, *rest):
+    def counts(m, bad, *rest):
         *counted, acc = rest
-        total, xsum, xmin, xmax, dsum, nbad, csums = acc
-        m = m.astype(jnp.int32)
-        on = m != 0
-        zero = jnp.zeros_like(x)
+        total, nbad, csums = acc
         return (
-            total + row_sum(m),
-            xsum + row_sum(jnp.where(on, x, zero)),
-            jnp.minimum(xmin, jnp.min(jnp.where(on, x, jnp.inf), axis=1, keepdims=True)),
-            jnp.maximum(xmax, jnp.max(jnp.where(on, x, -jnp.inf), axis=1, keepdims=True)),
-            dsum + row_sum(jnp.where(on, x - shift, zero)),
+            total + row_sum(m.astype(jnp.int32)),
             nbad + row_sum(bad),
             tuple(s + row_sum(t) for s, t in zip(csums, counted)),
         )
 
+    def first(m, bad, *rest):
+        *_, x, acc = rest
+        xsum, xmin, xmax, dsum = acc
+        zero = jnp.zeros_like(x)
+        return (
+            xsum + row_sum(jnp.where(m, x, zero)),
+            jnp.minimum(xmin, jnp.min(jnp.where(m, x, jnp.inf), axis=1, keepdims=True)),
+            jnp.maximum(xmax, jnp.max(jnp.where(m, x, -jnp.inf), axis=1, keepdims=True)),
+            dsum + row_sum(jnp.where(m, x - shift, zero)),
+        )
+
     izero = jnp.zeros((1, 1), jnp.int32)
     fzero = jnp.zeros((1, 1), jnp.float32)
-    init = (izero, fzero, fzero + jnp.inf, fzero - jnp.inf, fzero, izero, (izero,) * packs)
-    total, xsum, xmin, xmax, dsum, nbad, csums = blocks(first, init, 3 + packs)
+    total, nbad, csums = blocks(counts, (izero, izero, (izero,) * packs))
     if later is None:
         later, row_total = izero, total
-
-    # The moments take two passes: deviations from `shift`, then from their rounded mean
-    # `p`, corrected by the mean of the second deviations (exact for any `p`; accurate
-    # for one near the mean, as a float32 sum of values far from zero gives).
     k = jnp.maximum(total, 1).astype(jnp.float32)
-    p = dsum / k
     if ema:
         c = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
         log_keep = jnp.log2(1 - c)
@@ -247,10 +252,10 @@ def _kernel(
         pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
         ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))
 
-    def second(m, x, acc):
+    def second(on, bad, *rest):
+        *_, x, p, acc = rest
         before, s1, s2, wsum = acc
-        m = m.astype(jnp.int32)
-        on = m != 0
+        m = on.astype(jnp.int32)
         zero = jnp.zeros_like(x)
         after = later + total - before - jnp.cumsum(m, axis=1)
         e = jnp.where(on, x - shift - p, zero)
@@ -273,7 +278,22 @@ def _kernel(
             plt.store(out.at[rows, slot, jnp.ones_like(slot)], stamp, mask=keep)
         return before + row_sum(m), s1 + row_sum(e), s2 + row_sum(e * e), wsum
 
-    _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), 2)
+    def passes():
+        # The moments take two passes: deviations from `shift`, then from their rounded
+        # mean `p`, corrected by the mean of the second deviations (exact for any `p`;
+        # accurate for one near the mean, as a float32 sum of values far from zero gives).
+        xs = [values() for _, values in loaded]
+        init = (fzero, fzero + jnp.inf, fzero - jnp.inf, fzero)
+        xsum, xmin, xmax, dsum = blocks(first, init, xs)
+        p = dsum / k
+        _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), xs, [p] * len(xs))
+        return xsum, xmin, xmax, p, s1, s2, wsum
+
+    # A chunk with no entry (most group rows of a step, and every row of a step where no
+    # episode ends) reads no value: its sums are zero, its min and max +-inf, and it
+    # writes no ring slot.
+    empty = (fzero, fzero + jnp.inf, fzero - jnp.inf) + (fzero,) * 4
+    xsum, xmin, xmax, p, s1, s2, wsum = jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty)
     floats[:, 0:1] = xsum
     floats[:, 1:2] = xmin
     floats[:, 2:3] = xmax
