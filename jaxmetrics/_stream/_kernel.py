@@ -386,7 +386,12 @@ def fold(
     if n_chunks > 1:
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
     if packs and counted.shape[0]:
-        args.append((counted, whole(counted)))
+        # Padded to whole multiples of the source rows: shaped like the batch, XLA writes
+        # it in the batch's own kernel, where `[C, B]` is one more kernel per step.
+        sources = batch.values.shape[0]
+        more = -(-counted.shape[0] // sources) * sources - counted.shape[0]
+        padded = jnp.pad(counted, ((0, more), (0, 0)))
+        args.append((padded, whole(padded)))
     if ema is not None:
         args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
     first_ring = len(args)
