@@ -39,7 +39,7 @@ from ._selected import Selected
 
 MIN_BATCH = 32
 MAX_BATCH = 65536
-ONE_PROGRAM = 4096
+ONE_PROGRAM = 2048
 
 
 def fits(batch: int, dtype) -> bool:
@@ -54,7 +54,9 @@ def chunking(batch: int) -> tuple[int, int]:
     row up to `ONE_PROGRAM` entries in one, a longer one in chunks of 1,024 entries
     (2,048 past 16,384) whose partial statistics `fold` combines. One program per long
     row leaves most of the GPU idle (ten rows, ten programs), and smaller chunks make
-    more programs and partial statistics than the GPU gains from."""
+    more programs and partial statistics than the GPU gains from. A chunk without any
+    masked-in entry costs little (it reads no value), which pays for the chunks' counts
+    and partial statistics from 4,096 entries, not at 2,048 (docs/benchmarks.md)."""
     if batch <= ONE_PROGRAM:
         return batch, 1
     chunk = 1024 if batch <= 16384 else 2048

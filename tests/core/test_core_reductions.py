@@ -383,22 +383,25 @@ def test_fused_kernel_matches_a_python_loop(rows, batch, size, seed):
 @pytest.mark.parametrize(
     ("rows", "batch", "size", "seed"),
     # Seeds drawn for masks of every density: 2%, every entry, 50%, 2%, 50%.
-    [(2, 3000, 16, 0), (2, 3000, 5, 1), (1, 4095, 5, 0), (2, 2049, 16, 2), (2, 4000, 1, 0)],
+    [(2, 1500, 16, 2), (2, 2000, 5, 1), (1, 2047, 5, 4), (2, 1025, 16, 7), (2, 1999, 1, 4)],
 )
 def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     # A batch that is not a power of two is read in two blocks, the second overlapping the
-    # first (in all but one entry at 2,049): the arrival ranks, the moments and the
+    # first (in all but one entry at 1,025): the arrival ranks, the moments and the
     # ring writes across blocks, against the same loop.
     from jaxmetrics._stream import _kernel
 
+    assert _kernel.chunking(batch) == (batch, 1)
     assert _kernel.blocking(batch)[1] == 2
     check_fused_kernel(rows, batch, size, seed)
 
 
 @pytest.mark.parametrize(
     ("rows", "batch", "size", "seed"),
-    # Seeds drawn for masks of these densities: every entry, 50%, every entry, 2%, 50%, 2%.
+    # Seeds drawn for masks of these densities: 50%, every entry, 50%, every entry, 2%, 50%,
+    # 2%.
     [
+        (2, 3000, 700, 3),
         (2, 4097, 16, 1),
         (2, 8192, 6000, 2),
         (3, 24576, 5000, 2),
@@ -408,11 +411,11 @@ def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     ],
 )
 def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
-    # Past 4,096 entries a row is folded by one program per chunk: each chunk's arrival
+    # Past 2,048 entries a row is folded by one program per chunk: each chunk's arrival
     # ranks count the row's later chunks, rings larger than a chunk take arrivals from
     # several, the last chunk of a row that chunks do not divide overlaps the one before
-    # (4,097: in all but one entry), and the chunks' moments are combined; against the
-    # same loop.
+    # (3,000: in 72 entries; 4,097: in all but one), and the chunks' moments are combined;
+    # against the same loop.
     from jaxmetrics._stream import _kernel
 
     assert _kernel.chunking(batch)[1] > 1
@@ -422,7 +425,7 @@ def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
 @pytest.mark.parametrize(
     ("rows", "batch", "groups", "size", "seed"),
     # Seeds drawn for group indices in few groups, uniform, all in one group, uniform over
-    # 64 groups of 40 entries (most empty); past 4,096 (chunks): few, one, uniform. The
+    # 64 groups of 40 entries (most empty); past 2,048 (chunks): few, one, uniform. The
     # masks are half full, or full at 4,097.
     [(2, 64, 3, 5, 4), (1, 300, 8, 16, 0), (2, 100, 2, 5, 6), (1, 40, 64, 3, 7)]
     + [(1, 4097, 3, 700, 2), (1, 9000, 5, 16, 0), (1, 9000, 2, 3000, 6)],
