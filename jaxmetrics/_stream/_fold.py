@@ -68,13 +68,13 @@ def add_with_counts(
 ) -> tuple[StreamState, Count]:
     """`add` of the rows that `batch` selects (`Selected`), and `counts`
     (`[counts_width(plan, C)]`) plus the sum of each row of `counted[C, B]` (int32), in
-    its first C entries. The sums are taken in the batch's own
-    reduction and added in the per-row fields' kernel, where separate counts would be
-    two more kernels. `fused` lets a CUDA GPU fold the batch (its reduction, arrival
-    ranks, EMA sum and ring writes) in one kernel of our own (`_kernel`, where the
-    spec has an EMA or a window and the batch fits it; histograms and sketches keep
-    XLA's kernels); the caller passes it only for a batch that is not split over
-    devices, which that kernel cannot be. `interpret` (with `fused`) runs that kernel on
+    its first C entries. The sums are taken in the batch's own reduction and added in
+    the per-row fields' kernel, where separate counts would be two more kernels. `fused`
+    lets a CUDA GPU fold the batch (its reduction, arrival ranks, EMA sum and ring
+    writes) in one kernel of our own (`_kernel`, where the spec has an EMA or a window
+    and the batch fits it; histograms and sketches keep XLA's kernels); the caller
+    passes it only for a batch that is not split over devices, which that kernel cannot
+    be. `interpret` (with `fused`) runs that kernel on
     any platform, in Pallas' interpret mode (slow: for tests).
 
     `segments`, for a stream with segment rows (`_segments`): its `SegmentPlan` and the

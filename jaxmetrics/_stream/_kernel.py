@@ -109,8 +109,8 @@ def _kernel(
 ):
     """One chunk of a batch row (`chunking`); `rings` are the ring sizes, `packs` the
     counted rows per batch row (`counted`: read from a counted input; else none has
-    any). `table` holds the row's static ints (`Table`); `counts`
-    (past one chunk) the row's masked-in entries per chunk.
+    any). `table` holds the row's static ints (`Table`); `counts` (past one chunk) the
+    row's masked-in entries per chunk.
 
     The row is read from its source row of the batch (`Selected`), with its mask built
     as it is read: the source's mask and, for a group row (`grouped`), its group index
