@@ -43,8 +43,9 @@ class Selected:
     @classmethod
     def every(cls, values: jax.Array, mask: jax.Array, nonfinite: jax.Array) -> "Selected":
         """Each source row as it is: rows `[R, B]` with their own mask and flags."""
-        rows, batch = values.shape
-        ids = jnp.zeros((0, batch), jnp.int32)
+        rows = values.shape[0]
+        # No grouping, laid out like the values (an env axis split over devices stays so).
+        ids = values[:0].astype(jnp.int32)
         return cls(values, mask, nonfinite, ids, tuple(range(rows)), (-1,) * rows, (0,) * rows)
 
     @property
