@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._rows import SpecRows
+from ._stream import Selected
 
 
 def _is_numeric(dtype) -> bool:
@@ -152,21 +153,20 @@ def by_group(
     bad: jax.Array,
     group_ids: list[jax.Array],
     segmented: bool,
-) -> tuple[tuple[jax.Array, jax.Array, jax.Array], Segments | None]:
-    """Episode rows `[M, E]` as the report rows folded as rows: each metric over all envs,
-    then (for a grouped metric that has rows per group) once per group, masked to the
-    envs in that group; and, where `segmented`, the segment sources' inputs (`Segments`;
-    None without segment rows), whose group rows are then not among the rows. One
-    compare per grouping; no work per group beyond the elementwise mask."""
+) -> tuple[Selected, Segments | None]:
+    """Episode rows `[M, E]` as the report rows folded as rows (`_stream.Selected`): each
+    metric over all envs, then (for a grouped metric that has rows per group) once per
+    group, masked to the envs in that group; and, where `segmented`, the segment
+    sources' inputs (`Segments`; None without segment rows), whose group rows are then
+    not among the rows. No copy of the batch per group: the rows select from it."""
     if not rows.groupings:
-        return (values, ok, bad), None
+        return Selected.every(values, ok, bad), None
     segmented = segmented and bool(rows.segment_sources)
     src, kind, group = rows.report_rows if segmented else rows.every_row
-    # Row K of `ids` is 0 for every env: the overall rows match it as group 0.
-    ids = jnp.concatenate([jnp.stack(group_ids), jnp.zeros_like(group_ids[0])[None]])
-    match = jnp.take(ids, kind, axis=0) == jnp.asarray(group)[:, None]
-    take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
-    dense = take(values), take(ok) & match, take(bad) * match.astype(jnp.int32)
+    # Rows of every env (kind K) select no grouping.
+    kind = np.where(kind == len(rows.groupings), -1, kind)
+    ids = jnp.stack(group_ids)
+    dense = Selected(values, ok, bad, ids, *(tuple(int(i) for i in a) for a in (src, kind, group)))
     if not segmented:
         return dense, None
     s_src, s_kind = (np.asarray(a, np.int32) for a in zip(*rows.segment_sources))

@@ -311,13 +311,10 @@ class Metrics:
         ]
         segments_plan = self._rows.ep_segments
         segmented = segments_plan is not None and segments_plan.serves(num_envs)
-        (values, ok, bad), segments = _inputs.by_group(
-            self._rows, values, ok, bad, group_ids, segmented
-        )
-        # Materialized once (after the group split): without the barrier XLA recomputes
-        # the episode values from the old accumulators inside each reduction, which makes
-        # it copy them every step.
-        values, ok, bad, segments = jax.lax.optimization_barrier((values, ok, bad, segments))
+        rows, segments = _inputs.by_group(self._rows, values, ok, bad, group_ids, segmented)
+        # Materialized once: without the barrier XLA recomputes the episode values from
+        # the old accumulators inside each reduction, which makes it copy them every step.
+        rows, segments = jax.lax.optimization_barrier((rows, segments))
 
         def by_shard(a: jax.Array) -> jax.Array:
             # [M, E] -> [S, M, E/S]: shard s gets the s-th block of envs. With the env axis
@@ -339,17 +336,13 @@ class Metrics:
             shard_counts.append(jnp.sum(jnp.stack(out_of_range), axis=0, dtype=jnp.int32))
         counted = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
 
-        def fold(st, v, m, n, t, e, g):
+        def fold(st, b, t, e, g):
             segments = None if g is None else (segments_plan, g)
-            return _stream.add_with_counts(
-                plan, st, v, m, n, t, e, fused=shards == 1, segments=segments
-            )
+            return _stream.add_with_counts(plan, st, b, t, e, fused=shards == 1, segments=segments)
 
         args = (
             state.finished,
-            by_shard(values),
-            by_shard(ok),
-            by_shard(bad),
+            rows.arrays(by_shard),
             by_shard(counted),
             state.shard_counts,
             None if segments is None else tuple(by_shard(a) for a in segments),

@@ -15,8 +15,9 @@ All rows are stacked so that one fused XLA kernel serves every metric, whatever 
 number: the per-step cost grows with rows x envs elementwise, not with kernel launches.
 
 The package, one job a module: `_state` (the state, its plan, the rings), `_fold` (a
-batch into the state), `_kernel` (that fold as one GPU kernel), `_segments` (group rows
-of period statistics by segment reductions), `_merge` (states of
+batch into the state), `_kernel` (that fold as one GPU kernel), `_selected` (a batch's
+rows as source rows masked to a group), `_segments` (group rows of period statistics by
+segment reductions), `_merge` (states of
 disjoint workers into one) and `_compute` (the report statistics).
 """
 
@@ -35,6 +36,7 @@ from ._merge import merge as merge
 from ._merge import pad_ema_history as pad_ema_history
 from ._segments import SegmentPlan as SegmentPlan
 from ._segments import segment_batch as segment_batch
+from ._selected import Selected as Selected
 from ._state import MAX_EMA_HISTORY as MAX_EMA_HISTORY
 from ._state import Ring as Ring
 from ._state import StreamPlan as StreamPlan

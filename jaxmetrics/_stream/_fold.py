@@ -19,6 +19,7 @@ from .._numerics import kahan_add
 from .._sharding import gathered
 from . import _kernel, _segments
 from ._segments import SegmentPlan
+from ._selected import Selected
 from ._state import (
     INT32_MAX,
     HistGroup,
@@ -41,9 +42,10 @@ def add(
 ) -> StreamState:
     """Feeds `values[R, B]` where `mask`, column order being arrival order, and counts
     `nonfinite[R, B]` (int32, per entry) into the period's non-finite counts."""
-    return add_with_counts(
-        plan, s, values, mask, nonfinite, _nothing_counted(values), _count.zeros((0,))
-    )[0]
+    if nonfinite is None:
+        nonfinite = jnp.zeros(values.shape, jnp.int32)
+    batch = Selected.every(values, mask, nonfinite)
+    return add_with_counts(plan, s, batch, _nothing_counted(values), _count.zeros((0,)))[0]
 
 
 def counts_width(plan: StreamPlan, n: int) -> int:
@@ -57,30 +59,28 @@ def counts_width(plan: StreamPlan, n: int) -> int:
 def add_with_counts(
     plan: StreamPlan,
     s: StreamState,
-    values: jax.Array,
-    mask: jax.Array,
-    nonfinite: jax.Array | None,
+    batch: Selected,
     counted: jax.Array,
     counts: Count,
     fused: bool = False,
     interpret: bool = False,
     segments: tuple[SegmentPlan, tuple[jax.Array, ...]] | None = None,
 ) -> tuple[StreamState, Count]:
-    """`add`, and `counts` (`[counts_width(plan, C)]`) plus the sum of each row of
-    `counted[C, B]` (int32), in its first C entries. The sums are taken in the batch's own
-    reduction and added in the per-row fields' kernel, where separate counts would be
-    two more kernels. `fused` lets a CUDA GPU fold the batch (its reduction, arrival
-    ranks, EMA sum and ring writes) in one kernel of our own (`_kernel`, where the
-    spec has an EMA or a window and the batch fits it; histograms and sketches keep
-    XLA's kernels); the caller passes it only for a batch that is not split over
-    devices, which that kernel cannot be. `interpret` (with `fused`) runs that kernel on
+    """`add` of the rows that `batch` selects (`Selected`), and `counts`
+    (`[counts_width(plan, C)]`) plus the sum of each row of `counted[C, B]` (int32), in
+    its first C entries. The sums are taken in the batch's own reduction and added in
+    the per-row fields' kernel, where separate counts would be two more kernels. `fused`
+    lets a CUDA GPU fold the batch (its reduction, arrival ranks, EMA sum and ring
+    writes) in one kernel of our own (`_kernel`, where the spec has an EMA or a window
+    and the batch fits it; histograms and sketches keep XLA's kernels); the caller
+    passes it only for a batch that is not split over devices, which that kernel cannot
+    be. `interpret` (with `fused`) runs that kernel on
     any platform, in Pallas' interpret mode (slow: for tests).
 
     `segments`, for a stream with segment rows (`_segments`): its `SegmentPlan` and the
     segment sources' batch (values, ok, non-finite counts, group index, `[sources, B]`);
-    `values`, `mask` and `nonfinite` are then the batch of the other rows (the plan's
-    `dense` rows). Both halves' batch statistics are put in row order before the one
-    update of the per-row fields."""
+    `batch` then selects the other rows (the plan's `dense` rows). Both halves' batch
+    statistics are put in row order before the one update of the per-row fields."""
     dt = plan.dtype
     width = counts.lo.shape[0]
     wt = weight_dtype(dt)
@@ -90,26 +90,18 @@ def add_with_counts(
     # exact for constant data either way). No `count > 0` test here: with it XLA left
     # the shifted values out of the reduction's kernel (one more kernel per step).
     shift = s.mean
-    if nonfinite is None:
-        nonfinite = jnp.zeros(values.shape, jnp.int32)
     if plan.ema_rows or plan.windows or plan.hists or plan.sketches:
-        values, mask = gathered(values), gathered(mask)
+        batch = batch.arrays(gathered)
     folds = plan
     if segments is None:
-        counted = jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
-        folded = _fold_rows(plan, s, values, mask, nonfinite, shift, counted, fused, interpret)
+        folded = _fold_rows(plan, s, batch, shift, counted, fused, interpret)
     else:
-        sp, batch = segments
+        sp, sources = segments
         folds = sp.dense_plan
         part = _segments.dense_state(sp, s)
-        rows_counted = jnp.pad(
-            counted, ((0, counts_width(folds, counted.shape[0]) - counted.shape[0]), (0, 0))
-        )
-        folded = _fold_rows(
-            folds, part, values, mask, nonfinite, part.mean, rows_counted, fused, interpret
-        )
+        folded = _fold_rows(folds, part, batch, part.mean, counted, fused, interpret)
         grouped = _segments.segment_batch(
-            *(gathered(a) for a in batch), sp.groups, _segments.segment_rows(sp, shift)
+            *(gathered(a) for a in sources), sp.groups, _segments.segment_rows(sp, shift)
         )
         joined = _segments.joined(sp, _kernel.Batch(*folded[0]), grouped, counted.shape[0], width)
         folded = (joined, *folded[1:])
@@ -155,7 +147,7 @@ def add_with_counts(
         filled = jnp.where(mine, moved.filled, w.filled)
         windows.append(Ring(data, pos, filled))
     sketches = tuple(
-        _sketch.add(c, _sketch.slot(g, take_rows(g.rows, values), take_rows(g.rows, mask)))
+        _sketch.add(c, _sketch.slot(g, *batch.take(g.rows).dense()[:2]))
         for g, c in zip(folds.sketches, s.sketches)
     )
     new = s._replace(
@@ -184,13 +176,19 @@ def add_with_counts(
     return new, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, counted_sums))
 
 
-def _fold_rows(
-    plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, counted, fused, interpret
-):
-    """`_fold`, or where `fused` and the batch fits, `_fold_fused`."""
-    if (plan.ema_rows or plan.windows) and fused and _kernel.fits(mask.shape[1], plan.dtype):
-        return _fold_fused(plan, s, values, mask, nonfinite, shift, counted, interpret)
-    return _fold(plan, s, values, mask, nonfinite, shift, counted)
+def _fold_rows(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, fused, interpret):
+    """`_fold` of the rows `batch` selects, or where `fused` and the batch fits,
+    `_fold_fused`; `counted` is `[C, B]` (C up to the plan's rows times the packs of
+    `counts_width`)."""
+    if (plan.ema_rows or plan.windows) and fused and _kernel.fits(batch.batch, plan.dtype):
+        return _fold_fused(plan, s, batch, shift, counted, interpret)
+    return _fold(plan, s, *batch.dense(), shift, _counted_rows(plan, counted))
+
+
+def _counted_rows(plan: StreamPlan, counted: jax.Array) -> jax.Array:
+    """`counted[C, B]` padded to `counts_width` rows."""
+    width = counts_width(plan, counted.shape[0])
+    return jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
 
 
 def _ranked(plan: StreamPlan) -> tuple[int, ...]:
@@ -459,19 +457,19 @@ def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
     )
 
 
-def _fold_fused(
-    plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, counted, interpret
-):
+def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, interpret):
     """`_fold` on a CUDA GPU (or where `interpret`): the batch's statistics, the EMA and
-    the rings in one kernel of our own (`_kernel.fold`); elsewhere `_fold` itself."""
+    the rings in one kernel of our own (`_kernel.fold`), which reads the rows from
+    `batch`'s source rows; elsewhere `_fold` itself, of the rows as arrays."""
     rows = len(plan.rows)
+    packs = counts_width(plan, counted.shape[0]) // rows
 
     def where_of(members: tuple[int, ...]) -> np.ndarray:
         out = np.full(rows, -1, np.int32)
         out[list(members)] = np.arange(len(members), dtype=np.int32)
         return out
 
-    def kernel(s, values, mask, nonfinite, shift, counted):
+    def kernel(s, batch, shift, counted):
         rings = []
         for g, r in zip(plan.ema_groups, s.ema_rings):
             if r.size:
@@ -485,16 +483,20 @@ def _fold_fused(
         if plan.ema_rows:
             ema = _kernel.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off)
         stats, data = _kernel.fold(
-            mask, values, nonfinite, shift, s.steps, counted, ema, tuple(rings), interpret
+            batch, shift, s.steps, counted, packs, ema, tuple(rings), interpret
         )
         data = iter(data)
         ema_data = tuple(next(data) if r.size else r.data for r in s.ema_rings)
-        return stats, ema_data, tuple(data), *_hists_add(plan, s, values, mask)
+        hists = _pairs(
+            _hist_add_selected(g, h, z, batch, plan.dtype)
+            for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
+        )
+        return stats, ema_data, tuple(data), *hists
 
-    def reference(s, values, mask, nonfinite, shift, counted):
-        return _fold(plan, s, values, mask, nonfinite, shift, counted)
+    def reference(s, batch, shift, counted):
+        return _fold(plan, s, *batch.dense(), shift, _counted_rows(plan, counted))
 
-    args = (s, values, mask, nonfinite, shift, counted)
+    args = (s, batch, shift, counted)
     if interpret:
         return kernel(*args)
     return jax.lax.platform_dependent(*args, cuda=kernel, default=reference)
@@ -518,14 +520,50 @@ def slot_counts_compare(slot: jax.Array, into: jax.Array) -> jax.Array:
     return into + jnp.sum(slot[:, None, :] == bins, axis=2, dtype=jnp.int32)
 
 
+def _hist_slot(bins: int, values, mask, lo, hi) -> jax.Array:
+    """Each value's histogram slot (0: under `lo`, `bins + 1`: over `hi`), or `bins + 2`
+    (no slot) where not `mask` or NaN."""
+    t = jnp.floor((values - lo) / (hi - lo) * bins)
+    inner = jnp.clip(jnp.nan_to_num(t), 0, bins - 1).astype(jnp.int32) + 1
+    slot = jnp.where(values < lo, 0, jnp.where(values > hi, bins + 1, inner))
+    return jnp.where(mask & ~jnp.isnan(values), slot, bins + 2)
+
+
+def _hist_add_selected(g: HistGroup, h: Count, zero: jax.Array, batch: Selected, dt):
+    """`_hist_add` of the histogram's rows that `batch` selects (`g.rows`), on a CUDA GPU:
+    each source row is read once per grouping it is selected by (once more for its row
+    of every entry), each entry scattered into the row of its group, where the rows as
+    arrays would be a masked copy of the source per group, each scattered whole. The
+    rows are distinct selections (a spec's rows are)."""
+    sel = batch.take(g.rows)
+    if not sel.grouped:
+        return _hist_add(g, h, zero, *sel.dense()[:2], dt)
+    pairs = sorted(set(zip(sel.src, sel.kind)))
+    width = max(sel.group) + 1
+    n = sel.rows
+    # Per (source, grouping) and group: the histogram row (n: none).
+    lut = np.full((len(pairs), width), n, np.int32)
+    for r, (src, kind, group) in enumerate(zip(sel.src, sel.kind, sel.group)):
+        lut[pairs.index((src, kind)), group if kind >= 0 else 0] = r
+    src, kind = (np.array(a, np.int32) for a in zip(*pairs))
+    k = sel.ids.shape[0]
+    ids = jnp.concatenate([sel.ids, jnp.zeros_like(sel.ids[:1])])  # row K: 0, every entry
+    gid = jnp.take(ids, np.where(kind < 0, k, kind), axis=0)
+    inside = (gid >= 0) & (gid < width)
+    at = jnp.asarray(lut)[np.arange(len(pairs))[:, None], jnp.clip(gid, 0, width - 1)]
+    row = jnp.where(inside, at, n)
+    lo, hi = (jnp.asarray((*bound, 0.0), dt)[row] for bound in (g.lo, g.hi))
+    values = jnp.take(sel.values, src, axis=0)
+    ok = jnp.take(sel.ok, src, axis=0) & (row < n)
+    inc = zero.at[row, _hist_slot(g.bins, values, ok, lo, hi)].add(1, mode="drop")
+    return _count.add(h, inc), jnp.where(inc < 0, inc, 0)
+
+
 def _hist_add(g: HistGroup, h: Count, zero: jax.Array, values, mask, dt):
     """`h` with the batch counted in, and `zero` (`hist_steps`) as it was."""
     lo = jnp.asarray(g.lo, dt)[:, None]
     hi = jnp.asarray(g.hi, dt)[:, None]
-    t = jnp.floor((values - lo) / (hi - lo) * g.bins)
-    inner = jnp.clip(jnp.nan_to_num(t), 0, g.bins - 1).astype(jnp.int32) + 1
-    slot = jnp.where(values < lo, 0, jnp.where(values > hi, g.bins + 1, inner))
-    slot = jnp.where(mask & ~jnp.isnan(values), slot, g.bins + 2)  # matches no bin
+    slot = _hist_slot(g.bins, values, mask, lo, hi)
     # A scatter-add into `zero` in place: cheaper than compare-and-count on CPU and CUDA
     # (XLA does not fuse the compare into the reduction). TPUs scatter slowly: there,
     # compare and count.

@@ -12,6 +12,9 @@ and the weighted sum follow, and the ring slots are written in place (the rings 
 aliased to the outputs; other rows never touch a row's slots). With the full spec a step
 then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
 
+A group row (`_stream.Selected`) is read from its metric's row of the batch and the group
+index, its mask built as it is loaded; the batch is not copied per group.
+
 A row longer than `ONE_PROGRAM` is folded by one program per chunk of it, so that the
 GPU's multiprocessors share the batch: one small XLA reduction first counts each chunk's
 masked-in entries, from which a chunk's program knows how many of the row's arrivals
@@ -23,6 +26,7 @@ check that both agree (the kernel in Pallas' interpret mode).
 """
 
 import functools
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -31,9 +35,11 @@ import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
+from ._selected import Selected
+
 MIN_BATCH = 32
 MAX_BATCH = 65536
-ONE_PROGRAM = 4096
+ONE_PROGRAM = 2048
 
 
 def fits(batch: int, dtype) -> bool:
@@ -48,7 +54,9 @@ def chunking(batch: int) -> tuple[int, int]:
     row up to `ONE_PROGRAM` entries in one, a longer one in chunks of 1,024 entries
     (2,048 past 16,384) whose partial statistics `fold` combines. One program per long
     row leaves most of the GPU idle (ten rows, ten programs), and smaller chunks make
-    more programs and partial statistics than the GPU gains from."""
+    more programs and partial statistics than the GPU gains from. A chunk without any
+    masked-in entry costs little (it reads no value), which pays for the chunks' counts
+    and partial statistics from 4,096 entries, not at 2,048 (docs/benchmarks.md)."""
     if batch <= ONE_PROGRAM:
         return batch, 1
     chunk = 1024 if batch <= 16384 else 2048
@@ -73,6 +81,20 @@ class RingIn(NamedTuple):
     pos_row: np.ndarray
 
 
+class Table:
+    """The columns of a batch row's static ints (`fold`'s `table`, `[R, n]` int32): the
+    EMA coefficient's float32 bits, the row's source row, grouping (-1: none) and group
+    (`Selected`), its counted row per pack (-1: none), then each ring's `row` and
+    `pos_row` (`RingIn`)."""
+
+    COEFF, SRC, KIND, GROUP, COUNTED = range(5)
+
+    @staticmethod
+    def ring(packs: int, i: int) -> int:
+        """The column of ring `i`'s `row` (its `pos_row` follows)."""
+        return Table.COUNTED + packs + 2 * i
+
+
 class EmaIn(NamedTuple):
     """Per batch row: the EMA's coefficient `coeff` (0: no EMA) and the state's `ema_w` and
     `ema_off` (float32)."""
@@ -82,52 +104,91 @@ class EmaIn(NamedTuple):
     ema_off: jax.Array
 
 
-def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
+def _kernel(
+    *refs, ema: bool, rings: tuple[int, ...], packs: int, counted: bool, batch: int, grouped: bool
+):
     """One chunk of a batch row (`chunking`); `rings` are the ring sizes, `packs` the
-    counted arrays. `table` holds the row's static ints: the EMA coefficient's bits, then
-    each ring's `row` and `pos_row`; `counts` (past one chunk) the row's masked-in
-    entries per chunk.
+    counted rows per batch row (`counted`: read from a counted input; else none has
+    any). `table` holds the row's static ints (`Table`); `counts` (past one chunk) the
+    row's masked-in entries per chunk.
+
+    The row is read from its source row of the batch (`Selected`), with its mask built
+    as it is read: the source's mask and, for a group row (`grouped`), its group index
+    equal to the row's group; its non-finite flags count in the same group.
 
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
     blocks (`blocking`), the last ending at the row's end with the entries already
     covered masked out, so that no load reaches past the row (Pallas' interpret mode
-    cannot). The blocks stay in registers for two passes: the first sums what needs no
-    arrival rank (the count among them, which the ranks need), the second takes the
-    ranks, the moments around the first pass's mean, the EMA's weighted sum and the ring
-    writes. A chunk's ranks add the row's entries in later chunks (from `counts`), and
-    its EMA weights and ring slots follow from those global ranks. Its mean deviation is
-    also written off a pivot that every chunk of the row shares (the row's first value),
-    so that the chunks' means combine without the rounding of means far from zero."""
+    cannot). The mask, flags and counted rows are read first and counted; a chunk with
+    masked-in entries then reads its values and makes two passes over them: the first
+    sums what needs no arrival rank, the second takes the ranks, the moments around the
+    first pass's mean, the EMA's weighted sum and the ring writes. A chunk without any
+    (at most steps, most chunks of group rows) skips both. A chunk's ranks add the row's
+    entries in later chunks (from `counts`), and its EMA weights and ring slots follow
+    from those global ranks. Its mean deviation is also written off a pivot that every
+    chunk of the row shares (the row's first value), so that the chunks' means combine
+    without the rounding of means far from zero."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
+    if grouped:
+        ids_ref, *refs = refs
     chunk, n_chunks = chunking(batch)
     if n_chunks > 1:
         counts_ref, *refs = refs
-    counted_refs, refs = refs[:packs], refs[packs:]
+    if counted:
+        counted_ref, *refs = refs
     if ema:
         w_ref, eoff_ref, *refs = refs
     ring_in, refs = refs[: 2 * len(rings)], refs[2 * len(rings) :]
     floats, ints, *refs = refs
     block, n_blocks = blocking(chunk)
-    operands = [m_ref, x_ref, bad_ref, *counted_refs]
+
+    def entry(col: int) -> jax.Array:
+        return table[0, col]
+
+    src, kind, group = entry(Table.SRC), entry(Table.KIND), entry(Table.GROUP)
+    counted_rows = [entry(Table.COUNTED + p) for p in range(packs)]
+
+    def read(start, n: int, fresh) -> tuple[list[jax.Array], Callable[[], jax.Array]]:
+        """The row's mask, non-finite flags and counted rows at `n` entries from `start`,
+        those not `fresh` (None: all are) masked out, and what reads its values there."""
+        cols = pl.ds(start, n)
+        full = jnp.ones((1, n), jnp.bool_) if fresh is None else fresh
+
+        def at(ref, row, where=full):
+            if fresh is None and where is full:
+                return ref[pl.ds(row, 1), cols]
+            return plt.load(ref.at[pl.ds(row, 1), cols], mask=where, other=jnp.zeros((), ref.dtype))
+
+        m, bad = at(m_ref, src), at(bad_ref, src)
+        values = functools.partial(at, x_ref, src)
+        if grouped:
+            mine = at(ids_ref, jnp.maximum(kind, 0)) == group
+            match = (kind < 0) | mine
+            m = m & match
+            bad = bad * match.astype(bad.dtype)
+        if not counted:
+            return [m, bad, *(jnp.zeros((1, n), jnp.int32) for _ in counted_rows)], values
+        sums = [at(counted_ref, jnp.maximum(c, 0), full & (c >= 0)) for c in counted_rows]
+        return [m, bad, *sums], values
 
     def load(j):
         start = min(j * block, chunk - block)
         if start == j * block:
-            return [r[:, pl.ds(start, block)] for r in operands]
-        fresh = jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) >= j * block - start
-        at = (slice(None), pl.ds(start, block))
-        return [plt.load(r.at[at], mask=fresh, other=jnp.zeros((), r.dtype)) for r in operands]
+            return read(start, block, None)
+        return read(
+            start, block, jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) >= j * block - start
+        )
 
     def load_chunk(c):
         # The last chunk of a row that chunks do not divide ends at the row's end; its
         # entries of the chunk before are masked out.
         lo = c * chunk
         if batch % chunk == 0:
-            return [[r[:, pl.ds(lo, chunk)] for r in operands]]
+            return [read(lo, chunk, None)]
         start = jnp.minimum(lo, batch - chunk)
-        fresh = jax.lax.broadcasted_iota(jnp.int32, (1, chunk), 1) + start >= lo
-        at = (slice(None), pl.ds(start, chunk))
-        return [[plt.load(r.at[at], mask=fresh, other=jnp.zeros((), r.dtype)) for r in operands]]
+        return [
+            read(start, chunk, jax.lax.broadcasted_iota(jnp.int32, (1, chunk), 1) + start >= lo)
+        ]
 
     row_sum = functools.partial(jnp.sum, axis=1, keepdims=True)
     if n_chunks == 1:
@@ -141,45 +202,43 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
         later = row_sum(jnp.where(later_chunks, counts, 0))
         row_total = row_sum(counts)
 
-    def blocks(body, init, n_refs):
-        """`body(*the first n_refs of a block's mask, values, flags, counted..., carry)`
+    def blocks(body, init, *per_block):
+        """`body(*a block's mask, flags, counted..., *its entries of per_block, carry)`
         folded over the chunk's blocks."""
-        for block_values in loaded:
-            init = body(*block_values[:n_refs], init)
+        for j, (marks, _) in enumerate(loaded):
+            init = body(*marks, *(b[j] for b in per_block), init)
         return init
 
     shift = shift_ref[...]
 
-    def first(m, x, bad, *rest):
+    def counts(m, bad, *rest):
         *counted, acc = rest
-        total, xsum, xmin, xmax, dsum, nbad, csums = acc
-        m = m.astype(jnp.int32)
-        on = m != 0
-        zero = jnp.zeros_like(x)
+        total, nbad, csums = acc
         return (
-            total + row_sum(m),
-            xsum + row_sum(jnp.where(on, x, zero)),
-            jnp.minimum(xmin, jnp.min(jnp.where(on, x, jnp.inf), axis=1, keepdims=True)),
-            jnp.maximum(xmax, jnp.max(jnp.where(on, x, -jnp.inf), axis=1, keepdims=True)),
-            dsum + row_sum(jnp.where(on, x - shift, zero)),
+            total + row_sum(m.astype(jnp.int32)),
             nbad + row_sum(bad),
             tuple(s + row_sum(t) for s, t in zip(csums, counted)),
         )
 
+    def first(m, bad, *rest):
+        *_, x, acc = rest
+        xsum, xmin, xmax, dsum = acc
+        zero = jnp.zeros_like(x)
+        return (
+            xsum + row_sum(jnp.where(m, x, zero)),
+            jnp.minimum(xmin, jnp.min(jnp.where(m, x, jnp.inf), axis=1, keepdims=True)),
+            jnp.maximum(xmax, jnp.max(jnp.where(m, x, -jnp.inf), axis=1, keepdims=True)),
+            dsum + row_sum(jnp.where(m, x - shift, zero)),
+        )
+
     izero = jnp.zeros((1, 1), jnp.int32)
     fzero = jnp.zeros((1, 1), jnp.float32)
-    init = (izero, fzero, fzero + jnp.inf, fzero - jnp.inf, fzero, izero, (izero,) * packs)
-    total, xsum, xmin, xmax, dsum, nbad, csums = blocks(first, init, 3 + packs)
+    total, nbad, csums = blocks(counts, (izero, izero, (izero,) * packs))
     if later is None:
         later, row_total = izero, total
-
-    # The moments take two passes: deviations from `shift`, then from their rounded mean
-    # `p`, corrected by the mean of the second deviations (exact for any `p`; accurate
-    # for one near the mean, as a float32 sum of values far from zero gives).
     k = jnp.maximum(total, 1).astype(jnp.float32)
-    p = dsum / k
     if ema:
-        c = jax.lax.bitcast_convert_type(table[:, 0:1], jnp.float32)  # [1, 1]
+        c = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
         log_keep = jnp.log2(1 - c)
         # The offset and seeding are worked out here from the state's own fields:
         # computed outside, XLA put them in the per-row update's kernel, which then had
@@ -189,15 +248,16 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
         seeding = ~seeded & (c > 0)
     ring_at = []
     for i, size in enumerate(rings):
-        row = table[:, 1 + 2 * i : 2 + 2 * i]  # [1, 1]
-        pos_row = jnp.maximum(table[:, 2 + 2 * i : 3 + 2 * i], 0)
+        at = Table.ring(packs, i)
+        row = table[:, at : at + 1]  # [1, 1]
+        pos_row = jnp.maximum(table[:, at + 1 : at + 2], 0)
         pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
         ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))
 
-    def second(m, x, acc):
+    def second(on, bad, *rest):
+        *_, x, p, acc = rest
         before, s1, s2, wsum = acc
-        m = m.astype(jnp.int32)
-        on = m != 0
+        m = on.astype(jnp.int32)
         zero = jnp.zeros_like(x)
         after = later + total - before - jnp.cumsum(m, axis=1)
         e = jnp.where(on, x - shift - p, zero)
@@ -220,7 +280,22 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
             plt.store(out.at[rows, slot, jnp.ones_like(slot)], stamp, mask=keep)
         return before + row_sum(m), s1 + row_sum(e), s2 + row_sum(e * e), wsum
 
-    _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), 2)
+    def passes():
+        # The moments take two passes: deviations from `shift`, then from their rounded
+        # mean `p`, corrected by the mean of the second deviations (exact for any `p`;
+        # accurate for one near the mean, as a float32 sum of values far from zero gives).
+        xs = [values() for _, values in loaded]
+        init = (fzero, fzero + jnp.inf, fzero - jnp.inf, fzero)
+        xsum, xmin, xmax, dsum = blocks(first, init, xs)
+        p = dsum / k
+        _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), xs, [p] * len(xs))
+        return xsum, xmin, xmax, p, s1, s2, wsum
+
+    # A chunk with no entry (most group rows of a step, and every row of a step where no
+    # episode ends) reads no value: its sums are zero, its min and max +-inf, and it
+    # writes no ring slot.
+    empty = (fzero, fzero + jnp.inf, fzero - jnp.inf) + (fzero,) * 4
+    xsum, xmin, xmax, p, s1, s2, wsum = jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty)
     floats[:, 0:1] = xsum
     floats[:, 1:2] = xmin
     floats[:, 2:3] = xmax
@@ -229,7 +304,7 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     if ema:
         floats[:, 5:6] = wsum
     if n_chunks > 1:
-        lead = x_ref[:, 0:1] - shift
+        lead = x_ref[pl.ds(src, 1), pl.ds(0, 1)] - shift
         pivot = jnp.where(jnp.isfinite(lead), lead, 0)
         floats[:, 6:7] = (p - pivot) + s1 / k
         floats[:, 7:8] = pivot
@@ -257,22 +332,21 @@ class Batch(NamedTuple):
 
 
 def fold(
-    mask: jax.Array,
-    values: jax.Array,
-    nonfinite: jax.Array,
+    batch: Selected,
     shift: jax.Array,
     steps: jax.Array,
     counted: jax.Array,
+    packs: int,
     ema: EmaIn | None = None,
     rings: tuple[RingIn, ...] = (),
     interpret: bool = False,
 ) -> tuple[Batch, tuple[jax.Array, ...]]:
-    """Folds a batch `values[R, B]` (float32) where `mask` (bool): its statistics
-    (`Batch`; `nonfinite[R, B]` int32 flags, `shift[R]` float32, `counted[C, B]` int32 with
-    C a multiple of R: as arrays shaped like the batch, XLA writes them in the same
-    kernel as the batch, where a `[C, B]` of its own is one more kernel per step), and
-    each ring's data with its rows' newest arrivals written in, stamped with the row's
-    `steps[r]` (uint32).
+    """Folds the rows `[R, B]` that `batch` selects (`Selected`; float32 values, bool
+    mask, int32 non-finite flags): their statistics (`Batch`; `shift[R]` float32, and the
+    sums of `counted[C, B]` (int32, C up to `packs` times R) as `packs` counted rows per
+    batch row, `counted` row `p * R + r` in pack p of row r: read with the batch, where a
+    reduction of its own is one more kernel per step), and each ring's data with its
+    rows' newest arrivals written in, stamped with the row's `steps[r]` (uint32).
 
     The EMA's weighted sum is `sum c(1-c)^after (x - off)` over the row's masked-in
     entries, with `after` how many masked-in entries follow each one; `off` is `ema_off`
@@ -280,15 +354,15 @@ def fold(
     EMA row seeds it, weighing `(1-c)^after` instead. `interpret` runs it anywhere,
     slowly (Pallas' interpret mode).
     """
-    rows, batch = mask.shape
-    chunk, n_chunks = chunking(batch)
+    rows, width = batch.rows, batch.batch
+    chunk, n_chunks = chunking(width)
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
-    table = [coeff.view(np.int32)]
+    at = np.arange(rows, dtype=np.int32)[:, None] + rows * np.arange(packs, dtype=np.int32)
+    table = [coeff.view(np.int32)[:, None], batch.table(), np.where(at < counted.shape[0], at, -1)]
     for r in rings:
-        table += [np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)]
-    table = np.stack(table, axis=1)
+        table += [np.stack([np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)], 1)]
+    table = np.concatenate(table, axis=1).astype(np.int32)
     table = np.pad(table, ((0, 0), (0, pl.next_power_of_2(table.shape[1]) - table.shape[1])))
-    packs = counted.shape[0] // rows
 
     def whole(a):
         return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
@@ -302,19 +376,24 @@ def fold(
     def per_program(n):
         return pl.BlockSpec((1, n), lambda i, *c: (i, *c) if c else (i, 0))
 
-    line = cols(batch)
     one = cols(1)
-    args = [
-        (mask, line),
-        (values, line),
-        (nonfinite, line),
+    args = [(a, whole(a)) for a in (batch.ok, batch.values, batch.bad)]
+    args += [
         (col(shift), one),
         (col(steps.astype(jnp.uint32)), one),
         (jnp.asarray(table), cols(table.shape[1])),
     ]
+    if batch.grouped:
+        args.append((batch.ids, whole(batch.ids)))
     if n_chunks > 1:
-        args.append((chunk_counts(mask, chunk), cols(pl.next_power_of_2(n_chunks))))
-    args += [(counted[p * rows : (p + 1) * rows], line) for p in range(packs)]
+        args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
+    if packs and counted.shape[0]:
+        # Padded to whole multiples of the source rows: shaped like the batch, XLA writes
+        # it in the batch's own kernel, where `[C, B]` is one more kernel per step.
+        sources = batch.values.shape[0]
+        more = -(-counted.shape[0] // sources) * sources - counted.shape[0]
+        padded = jnp.pad(counted, ((0, more), (0, 0)))
+        args.append((padded, whole(padded)))
     if ema is not None:
         args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
     first_ring = len(args)
@@ -331,7 +410,9 @@ def fold(
         ema=ema is not None,
         rings=tuple(r.data.shape[1] for r in rings),
         packs=packs,
-        batch=batch,
+        counted=bool(packs and counted.shape[0]),
+        batch=width,
+        grouped=batch.grouped,
     )
     floats, ints, *data = pl.pallas_call(
         kernel,
@@ -356,9 +437,11 @@ def fold(
     return stats, tuple(data)
 
 
-def chunk_counts(mask: jax.Array, chunk: int) -> jax.Array:
-    """Per row of `mask[R, B]`: the masked-in entries of each chunk of `chunk` entries
-    (`[R, n]` int32, zero-padded to a power of two `n`)."""
+def chunk_counts(batch: Selected, chunk: int) -> jax.Array:
+    """Per row that `batch` selects: its masked-in entries in each chunk of `chunk`
+    entries (`[R, n]` int32, zero-padded to a power of two `n`). XLA computes each row's
+    mask from the source rows within the reduction."""
+    mask = batch.dense()[1]
     rows, batch = mask.shape
     n = -(-batch // chunk)
     padded = jnp.pad(mask, ((0, 0), (0, n * chunk - batch)))
@@ -384,13 +467,15 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
 
     k = ints[..., 0].astype(jnp.float32)
     dev, pivot = floats[..., 6], floats[:, 0, 7]
-    s1, s2 = total(k * dev), total(k * dev * dev)
-    mean = s1 / jnp.maximum(total(k), 1)
+    s1, s2, n = total(k * dev), total(k * dev * dev), total(k)
+    mean = s1 / jnp.maximum(n, 1)
     row_floats = [
         total(floats[..., 0]),
         over_chunks(jnp.minimum, floats[..., 1]),
         over_chunks(jnp.maximum, floats[..., 2]),
-        pivot + mean,
+        # An empty row's mean deviation is 0, as a row of one chunk gives (the pivot is
+        # a value of the source row, here of no entry of the row).
+        jnp.where(n > 0, pivot + mean, 0),
         total(floats[..., 4]) + jnp.maximum(s2 - s1 * mean, 0),
         total(floats[..., 5]),
     ]

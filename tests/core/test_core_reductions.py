@@ -383,22 +383,25 @@ def test_fused_kernel_matches_a_python_loop(rows, batch, size, seed):
 @pytest.mark.parametrize(
     ("rows", "batch", "size", "seed"),
     # Seeds drawn for masks of every density: 2%, every entry, 50%, 2%, 50%.
-    [(2, 3000, 16, 0), (2, 3000, 5, 1), (1, 4095, 5, 0), (2, 2049, 16, 2), (2, 4000, 1, 0)],
+    [(2, 1500, 16, 2), (2, 2000, 5, 1), (1, 2047, 5, 4), (2, 1025, 16, 7), (2, 1999, 1, 4)],
 )
 def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     # A batch that is not a power of two is read in two blocks, the second overlapping the
-    # first (in all but one entry at 2,049): the arrival ranks, the moments and the
+    # first (in all but one entry at 1,025): the arrival ranks, the moments and the
     # ring writes across blocks, against the same loop.
     from jaxmetrics._stream import _kernel
 
+    assert _kernel.chunking(batch) == (batch, 1)
     assert _kernel.blocking(batch)[1] == 2
     check_fused_kernel(rows, batch, size, seed)
 
 
 @pytest.mark.parametrize(
     ("rows", "batch", "size", "seed"),
-    # Seeds drawn for masks of these densities: every entry, 50%, every entry, 2%, 50%, 2%.
+    # Seeds drawn for masks of these densities: 50%, every entry, 50%, every entry, 2%, 50%,
+    # 2%.
     [
+        (2, 3000, 700, 3),
         (2, 4097, 16, 1),
         (2, 8192, 6000, 2),
         (3, 24576, 5000, 2),
@@ -408,26 +411,71 @@ def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     ],
 )
 def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
-    # Past 4,096 entries a row is folded by one program per chunk: each chunk's arrival
+    # Past 2,048 entries a row is folded by one program per chunk: each chunk's arrival
     # ranks count the row's later chunks, rings larger than a chunk take arrivals from
     # several, the last chunk of a row that chunks do not divide overlaps the one before
-    # (4,097: in all but one entry), and the chunks' moments are combined; against the
-    # same loop.
+    # (3,000: in 72 entries; 4,097: in all but one), and the chunks' moments are combined;
+    # against the same loop.
     from jaxmetrics._stream import _kernel
 
     assert _kernel.chunking(batch)[1] > 1
     check_fused_kernel(rows, batch, size, seed)
 
 
-def check_fused_kernel(rows, batch, size, seed):
+@pytest.mark.parametrize(
+    ("rows", "batch", "groups", "size", "seed"),
+    # Seeds drawn for group indices in few groups, uniform, all in one group, uniform over
+    # 64 groups of 40 entries (most empty); past 2,048 (chunks): few, one, uniform. The
+    # masks are half full, or full at 4,097.
+    [(2, 64, 3, 5, 4), (1, 300, 8, 16, 0), (2, 100, 2, 5, 6), (1, 40, 64, 3, 7)]
+    + [(1, 4097, 3, 700, 2), (1, 9000, 5, 16, 0), (1, 9000, 2, 3000, 6)],
+)
+def test_fused_kernel_reads_group_rows_from_the_ungrouped_batch(rows, batch, groups, size, seed):
+    # Group rows (`Selected`) read from the source rows and the group index, each masked
+    # to its group in the kernel: against the loop over the rows masked in numpy, with
+    # few and many groups, empty groups, every entry in one group, out-of-range group
+    # indices, counted rows in part of the rows, batches of one and two blocks and of
+    # several chunks.
+    check_fused_kernel(rows, batch, size, seed, groups)
+
+
+def check_fused_kernel(rows, batch, size, seed, groups=0):
+    """The kernel against a loop over each row (see the tests above). With `groups`, the
+    batch's rows are each of `rows` source rows over every entry and then masked to each
+    of `groups` groups (`Selected`), the group index drawn uniformly (out of range on
+    either side included), all in one group, or in a few groups (the others empty); the
+    loop reads the rows masked in numpy."""
+    from jaxmetrics import _stream
     from jaxmetrics._stream import _kernel
 
     rng = np.random.default_rng(seed)
-    mask = rng.random((rows, batch)) < rng.choice([0.0, 0.02, 0.5, 1.0])
+    sources = rows
+    ok = rng.random((sources, batch)) < rng.choice([0.0, 0.02, 0.5, 1.0])
     level = rng.choice([1e4, 1e6])
-    values = (level + rng.normal(size=(rows, batch))).astype(np.float32)
-    nonfinite = rng.integers(0, 2, (rows, batch), dtype=np.int32)
-    counted = rng.integers(0, 3, (rows * rng.integers(0, 3), batch), dtype=np.int32)
+    x = (level + rng.normal(size=(sources, batch))).astype(np.float32)
+    flags = rng.integers(0, 2, (sources, batch), dtype=np.int32)
+    src, kind, group = np.arange(sources), np.full(sources, -1), np.zeros(sources, int)
+    ids = np.zeros((0, batch), np.int32)
+    if groups:
+        how = rng.integers(0, 3)
+        if how == 0:
+            gid = rng.integers(-1, groups + 1, batch)
+        elif how == 1:
+            gid = np.full(batch, rng.integers(0, groups))
+        else:
+            gid = rng.choice(rng.integers(-1, groups, 2), batch)
+        ids = np.stack([rng.integers(0, groups, batch), gid]).astype(np.int32)
+        src = np.repeat(np.arange(sources), 1 + groups)
+        kind = np.tile(np.r_[-1, np.ones(groups, int)], sources)
+        group = np.tile(np.r_[0, np.arange(groups)], sources)
+        rows = len(src)
+    match = np.ones((rows, batch), bool)
+    if groups:
+        match = (kind[:, None] < 0) | (ids[np.maximum(kind, 0)] == group[:, None])
+    mask, values, nonfinite = ok[src] & match, x[src], flags[src] * match
+    packs = int(rng.integers(0, 3))
+    counted = rng.integers(0, 3, (rng.integers(max(0, rows * packs - 1), rows * packs + 1), batch))
+    counted = counted.astype(np.int32)
     coeff = rng.choice([0.0, 0.01, 0.3, 1.0], rows).astype(np.float32)
     ema_w = rng.choice([0.0, 1.0], rows).astype(np.float32)  # 0: unseeded
     ema_off, shift = (level + rng.normal(size=(2, rows))).astype(np.float32)
@@ -441,14 +489,18 @@ def check_fused_kernel(rows, batch, size, seed):
     data = rng.integers(0, 2**32, (len(members), size, 2), dtype=np.uint32)
     pos = rng.integers(0, size, rows).astype(np.int32)
 
-    def fold(m, v, bad, t, ta, w, o, sh, d, p):
+    def fold(m, v, bad, i, t, ta, w, o, sh, d, p):
         ema = _kernel.EmaIn(coeff, w, o)
         ring = _kernel.RingIn(d, p, ring_row, np.arange(rows))
-        return _kernel.fold(m, v, bad, sh, t, ta, ema, (ring,), interpret=True)
+        table = (tuple(int(a) for a in b) for b in (src, kind, group))
+        selected = _stream.Selected(v, m, bad, i, *table)
+        return _kernel.fold(selected, sh, t, ta, packs, ema, (ring,), interpret=True)
 
-    args = (mask, values, nonfinite, steps, counted, ema_w, ema_off, shift, data, pos)
+    args = (ok, x, flags, ids, steps, counted, ema_w, ema_off, shift, data, pos)
     stats, (got,) = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
-    np.testing.assert_array_equal(stats.counted_sums, counted.sum(axis=1))
+    want_counted = np.zeros(rows * packs, np.int64)
+    want_counted[: counted.shape[0]] = counted.sum(axis=1)
+    np.testing.assert_array_equal(stats.counted_sums, want_counted)
     np.testing.assert_array_equal(stats.nonfinite, nonfinite.sum(axis=1))
     np.testing.assert_array_equal(stats.count, mask.sum(axis=1))
 
@@ -507,14 +559,18 @@ def test_fused_kernel_serves_float32_batches_of_32_to_65536(monkeypatch, num_env
 
 
 @pytest.mark.parametrize(
-    ("num_envs", "steps"), [(64, 30), (300, 10), (3000, 10), (4097, 10), (12288, 10)]
+    ("num_envs", "steps", "groups"),
+    [(64, 30, 0), (300, 10, 0), (3000, 10, 0), (4097, 10, 0), (12288, 10, 0)]
+    + [(300, 10, 3), (4097, 10, 3)],
 )
-def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch, num_envs, steps):
+def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch, num_envs, steps, groups):
     # The whole update with the kernel (interpret mode) against the jnp path that CPUs and
     # sharded states take, over a rollout with episodes ending, non-finite values, two
     # EMAs, two window sizes and a histogram: every count, ring slot and histogram bin
     # of the state equal, every reported number to float32 rounding (the batch's sums
-    # are taken in another order). Batches of one block, of two, and of several chunks.
+    # are taken in another order). Batches of one block, of two, and of several chunks;
+    # with `groups`, each metric also per group (indices out of range included), its
+    # group rows read by the kernel from the ungrouped batch.
     from jaxmetrics import _stream
 
     stats = {
@@ -523,29 +579,32 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch, num_envs, s
         "c": ("max", jm.histogram(5, (-1.0, 1.0)), jm.window(7)),
         "d": ("min",),
     }
+    names = tuple(f"g{i}" for i in range(groups))
     metrics = jm.Metrics(
         terms={
-            k: jm.Term(lambda x, i: x[i], reduce="mean", stats=v, params={"i": i})
+            k: jm.Term(lambda x, i: x[0][i], reduce="mean", stats=v, params={"i": i})
             for i, (k, v) in enumerate(stats.items())
-        }
+        },
+        groups=jm.groups(lambda x: x[1], names) if groups else None,
     )
     rng = np.random.default_rng(7)
     xs = rng.normal(size=(steps, 4, num_envs)).astype(np.float32)
     xs[3, 0, :5], xs[5, 2, 7], xs[8, 1, 9] = np.nan, np.inf, -np.inf
     dones = rng.random((steps, num_envs)) < 0.3
+    gs = rng.integers(-1, groups + 1, (steps, num_envs)).astype(np.int32)
 
     def run():
         def body(s, inp):
-            return metrics.update(s, inp[0], inp[1]), None
+            return metrics.update(s, inp[:2], inp[2]), None
 
-        scan = jax.jit(lambda s, x, d: jax.lax.scan(body, s, (x, d))[0])
-        return scan(metrics.init(num_envs), jnp.asarray(xs), jnp.asarray(dones))
+        scan = jax.jit(lambda s, *inputs: jax.lax.scan(body, s, inputs)[0])
+        return scan(metrics.init(num_envs), *map(jnp.asarray, (xs, gs, dones)))
 
     plain = run()
     fold = _stream.add_with_counts
     monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
     state = metrics.init(num_envs)
-    assert "pallas_call" in str(jax.make_jaxpr(metrics.update)(state, xs[0], dones[0]))
+    assert "pallas_call" in str(jax.make_jaxpr(metrics.update)(state, (xs[0], gs[0]), dones[0]))
     fused = run()
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(plain), jax.tree.leaves(fused)):
         if not jnp.issubdtype(a.dtype, jnp.floating):

@@ -1,0 +1,90 @@
+"""A batch's stream rows as selections of source rows: each row one source row of the
+batch, over every entry or masked to the entries of one group.
+
+A grouped metric reports one stream row per group beside its overall row, each the
+metric's values masked to that group's envs. Kept as the source rows, the group index
+and a static table of which source and group each row selects, the batch is no bigger
+with groups than without: the fused kernel (`_kernel`) builds a row's mask from them as
+it reads the row, where copies of the batch masked per row are `groups` times its size,
+written and read again every step. XLA's path takes those copies (`dense`), which its
+reductions need.
+"""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._state import take_rows
+
+
+@functools.partial(
+    jax.tree_util.register_dataclass,
+    data_fields=["values", "ok", "bad", "ids"],
+    meta_fields=["src", "kind", "group"],
+)
+@dataclasses.dataclass(frozen=True)
+class Selected:
+    """Row r of the batch is source row `src[r]` of `values` (`[S, B]`), masked in where
+    `ok` and, for `kind[r] >= 0`, where grouping `kind[r]`'s index (`ids[kind[r]]`,
+    `[K, B]` int32) is `group[r]`; its non-finite flags (`bad`, int32) count in the same
+    entries of that group whether or not they are `ok`. `kind[r] == -1`: every entry."""
+
+    values: jax.Array
+    ok: jax.Array
+    bad: jax.Array
+    ids: jax.Array
+    src: tuple[int, ...]
+    kind: tuple[int, ...]
+    group: tuple[int, ...]
+
+    @classmethod
+    def every(cls, values: jax.Array, mask: jax.Array, nonfinite: jax.Array) -> "Selected":
+        """Each source row as it is: rows `[R, B]` with their own mask and flags."""
+        rows = values.shape[0]
+        # No grouping, laid out like the values (an env axis split over devices stays so).
+        ids = values[:0].astype(jnp.int32)
+        return cls(values, mask, nonfinite, ids, tuple(range(rows)), (-1,) * rows, (0,) * rows)
+
+    @property
+    def rows(self) -> int:
+        return len(self.src)
+
+    @property
+    def batch(self) -> int:
+        return self.values.shape[-1]
+
+    @property
+    def grouped(self) -> bool:
+        return any(k >= 0 for k in self.kind)
+
+    def table(self) -> np.ndarray:
+        """Per row: its source row, grouping (-1: none) and group (`[R, 3]` int32)."""
+        return np.stack([self.src, self.kind, self.group], axis=1).astype(np.int32).reshape(-1, 3)
+
+    def take(self, rows: tuple[int, ...]) -> "Selected":
+        """The selection of `rows` (static) only."""
+        pick = lambda a: tuple(a[r] for r in rows)  # noqa: E731
+        return dataclasses.replace(
+            self, src=pick(self.src), kind=pick(self.kind), group=pick(self.group)
+        )
+
+    def arrays(self, fn) -> "Selected":
+        """`fn` applied to each source array and the group index."""
+        return dataclasses.replace(
+            self, values=fn(self.values), ok=fn(self.ok), bad=fn(self.bad), ids=fn(self.ids)
+        )
+
+    def dense(self) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """The rows as arrays `[R, B]`: values, mask and int32 non-finite flags."""
+        if not self.grouped:
+            return tuple(take_rows(self.src, a) for a in (self.values, self.ok, self.bad))
+        src = np.asarray(self.src, np.int32)
+        take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
+        # Row K of `ids` is 0 for every entry: rows of every entry match it as group 0.
+        ids = jnp.concatenate([self.ids, jnp.zeros_like(self.ids[:1])])
+        kind = np.where(np.asarray(self.kind) < 0, self.ids.shape[0], self.kind).astype(np.int32)
+        match = jnp.take(ids, kind, axis=0) == jnp.asarray(self.group, jnp.int32)[:, None]
+        return take(self.values), take(self.ok) & match, take(self.bad) * match.astype(jnp.int32)
