@@ -12,11 +12,13 @@ and the weighted sum follow, and the ring slots are written in place (the rings 
 aliased to the outputs; other rows never touch a row's slots). With the full spec a step
 then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
 
-A row longer than `ONE_PROGRAM` is folded by one program per chunk of it, so that the
-GPU's multiprocessors share the batch: one small XLA reduction first counts each chunk's
-masked-in entries, from which a chunk's program knows how many of the row's arrivals
-follow it (its ranks, EMA weights and ring slots are the row's), and the chunks' partial
-statistics are combined after the kernel, in the kernel that updates the per-row state.
+A row longer than `ONE_PROGRAM` is folded by one program per chunk of it (`chunking`), so
+that the GPU's multiprocessors share the batch. A chunk's program needs the row's masked-in entries
+before and after it, from which it knows how many of the row's arrivals follow each of its
+own (its ranks, EMA weights and ring slots are the row's): up to `COUNTED_HERE` entries
+it counts them in the row's mask itself, past that one small XLA reduction first counts
+each chunk's. The chunks' partial statistics are combined after the kernel, in the kernel
+that updates the per-row state.
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
@@ -33,7 +35,9 @@ from jax.experimental.pallas import triton as plt
 
 MIN_BATCH = 32
 MAX_BATCH = 65536
-ONE_PROGRAM = 4096
+ONE_PROGRAM = 1024
+COUNTED_HERE = 4096
+PROGRAMS = 128
 
 
 def fits(batch: int, dtype) -> bool:
@@ -43,16 +47,21 @@ def fits(batch: int, dtype) -> bool:
     return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
 
 
-def chunking(batch: int) -> tuple[int, int]:
-    """The entries one program folds and the number of programs per row of `batch`: a
-    row up to `ONE_PROGRAM` entries in one, a longer one in chunks of 1,024 entries
-    (2,048 past 16,384) whose partial statistics `fold` combines. One program per long
-    row leaves most of the GPU idle (ten rows, ten programs), and smaller chunks make
-    more programs and partial statistics than the GPU gains from."""
-    if batch <= ONE_PROGRAM:
-        return batch, 1
-    chunk = 1024 if batch <= 16384 else 2048
-    return chunk, -(-batch // chunk)
+def chunking(rows: int, batch: int) -> tuple[int, int]:
+    """The entries one program folds and the number of programs per row, for `rows` rows
+    of `batch`: a row past `COUNTED_HERE` entries in chunks of 1,024 entries (2,048 past
+    16,384) whose partial statistics `fold` combines, a shorter one past `ONE_PROGRAM` in
+    chunks of 1,024 while that makes at most `PROGRAMS` programs, else in one. A
+    program's time is mostly latency that grows with its entries (4.4 us for 4,096 on an
+    H100), so ten rows of 4,096 run faster as forty programs; a hundred rows already
+    cover the GPU, and four hundred programs run slower than a hundred. Past
+    `COUNTED_HERE`, one program per long row leaves most of the GPU idle, and smaller
+    chunks make more programs and partial statistics than the GPU gains from."""
+    if batch > COUNTED_HERE:
+        chunk = 1024 if batch <= 16384 else 2048
+        return chunk, -(-batch // chunk)
+    n = -(-batch // ONE_PROGRAM)
+    return (ONE_PROGRAM, n) if n > 1 and rows * n <= PROGRAMS else (batch, 1)
 
 
 def blocking(batch: int) -> tuple[int, int]:
@@ -82,11 +91,31 @@ class EmaIn(NamedTuple):
     ema_off: jax.Array
 
 
-def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
-    """One chunk of a batch row (`chunking`); `rings` are the ring sizes, `packs` the
-    counted arrays. `table` holds the row's static ints: the EMA coefficient's bits, then
-    each ring's `row` and `pos_row`; `counts` (past one chunk) the row's masked-in
-    entries per chunk.
+def _masked_in_around(m_ref, batch: int, lo, hi) -> tuple[jax.Array, jax.Array]:
+    """The masked-in entries of the row `m_ref[1, batch]` (up to `COUNTED_HERE`) before
+    entry `lo` and from entry `hi` on (`[1, 1]` int32 each), read in `blocking`'s
+    blocks."""
+    block, n_blocks = blocking(batch)
+    earlier = later = jnp.zeros((1, 1), jnp.int32)
+    for j in range(n_blocks):
+        start = min(j * block, batch - block)
+        at = jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) + start
+        where = (slice(None), pl.ds(start, block))
+        if start == j * block:
+            m = m_ref[where]
+        else:
+            m = plt.load(m_ref.at[where], mask=at >= j * block, other=jnp.zeros((), m_ref.dtype))
+        m = m.astype(jnp.int32)
+        earlier += jnp.sum(jnp.where(at < lo, m, 0), axis=1, keepdims=True)
+        later += jnp.sum(jnp.where(at >= hi, m, 0), axis=1, keepdims=True)
+    return earlier, later
+
+
+def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, rows: int, batch: int):
+    """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
+    sizes, `packs` the counted arrays. `table` holds the row's static ints: the EMA
+    coefficient's bits, then each ring's `row` and `pos_row`; `counts` (chunks past
+    `COUNTED_HERE` entries) the row's masked-in entries per chunk.
 
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
     blocks (`blocking`), the last ending at the row's end with the entries already
@@ -94,13 +123,14 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     cannot). The blocks stay in registers for two passes: the first sums what needs no
     arrival rank (the count among them, which the ranks need), the second takes the
     ranks, the moments around the first pass's mean, the EMA's weighted sum and the ring
-    writes. A chunk's ranks add the row's entries in later chunks (from `counts`), and
-    its EMA weights and ring slots follow from those global ranks. Its mean deviation is
+    writes. A chunk's ranks add the row's masked-in entries in later chunks (counted in the
+    row's mask by `_masked_in_around`, or from `counts`), and its EMA weights and ring
+    slots follow from those global ranks and the row's count. Its mean deviation is
     also written off a pivot that every chunk of the row shares (the row's first value),
     so that the chunks' means combine without the rounding of means far from zero."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
-    chunk, n_chunks = chunking(batch)
-    if n_chunks > 1:
+    chunk, n_chunks = chunking(rows, batch)
+    if n_chunks > 1 and batch > COUNTED_HERE:
         counts_ref, *refs = refs
     counted_refs, refs = refs[:packs], refs[packs:]
     if ema:
@@ -136,10 +166,14 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     else:
         chunk_id = pl.program_id(1)
         loaded = load_chunk(chunk_id)
-        counts = counts_ref[...]
-        later_chunks = jax.lax.broadcasted_iota(jnp.int32, counts.shape, 1) > chunk_id
-        later = row_sum(jnp.where(later_chunks, counts, 0))
-        row_total = row_sum(counts)
+        if batch > COUNTED_HERE:
+            counts = counts_ref[...]
+            at = jax.lax.broadcasted_iota(jnp.int32, counts.shape, 1)
+            earlier = row_sum(jnp.where(at < chunk_id, counts, 0))
+            later = row_sum(jnp.where(at > chunk_id, counts, 0))
+        else:
+            lo = chunk_id * chunk
+            earlier, later = _masked_in_around(m_ref, batch, lo, jnp.minimum(lo + chunk, batch))
 
     def blocks(body, init, n_refs):
         """`body(*the first n_refs of a block's mask, values, flags, counted..., carry)`
@@ -172,6 +206,8 @@ def _kernel(*refs, ema: bool, rings: tuple[int, ...], packs: int, batch: int):
     total, xsum, xmin, xmax, dsum, nbad, csums = blocks(first, init, 3 + packs)
     if later is None:
         later, row_total = izero, total
+    else:
+        row_total = earlier + total + later
 
     # The moments take two passes: deviations from `shift`, then from their rounded mean
     # `p`, corrected by the mean of the second deviations (exact for any `p`; accurate
@@ -281,7 +317,7 @@ def fold(
     slowly (Pallas' interpret mode).
     """
     rows, batch = mask.shape
-    chunk, n_chunks = chunking(batch)
+    chunk, n_chunks = chunking(rows, batch)
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
     table = [coeff.view(np.int32)]
     for r in rings:
@@ -312,7 +348,7 @@ def fold(
         (col(steps.astype(jnp.uint32)), one),
         (jnp.asarray(table), cols(table.shape[1])),
     ]
-    if n_chunks > 1:
+    if n_chunks > 1 and batch > COUNTED_HERE:
         args.append((chunk_counts(mask, chunk), cols(pl.next_power_of_2(n_chunks))))
     args += [(counted[p * rows : (p + 1) * rows], line) for p in range(packs)]
     if ema is not None:
@@ -331,6 +367,7 @@ def fold(
         ema=ema is not None,
         rings=tuple(r.data.shape[1] for r in rings),
         packs=packs,
+        rows=rows,
         batch=batch,
     )
     floats, ints, *data = pl.pallas_call(
@@ -384,15 +421,16 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
 
     k = ints[..., 0].astype(jnp.float32)
     dev, pivot = floats[..., 6], floats[:, 0, 7]
-    s1, s2 = total(k * dev), total(k * dev * dev)
-    mean = s1 / jnp.maximum(total(k), 1)
+    s1, s2, n = total(k * dev), total(k * dev * dev), total(k)
+    mean = s1 / jnp.maximum(n, 1)
     row_floats = [
         total(floats[..., 0]),
         over_chunks(jnp.minimum, floats[..., 1]),
         over_chunks(jnp.maximum, floats[..., 2]),
-        pivot + mean,
+        jnp.where(n > 0, pivot + mean, 0),  # an empty row's 0, as one program gives
         total(floats[..., 4]) + jnp.maximum(s2 - s1 * mean, 0),
         total(floats[..., 5]),
     ]
-    row_ints = [total(ints[..., i]) for i in range(ints.shape[2])]
-    return jnp.stack(row_floats, axis=1), jnp.stack(row_ints, axis=1)
+    # The ints summed as one [R, I] array: stacked from [R] columns, the counted sums of
+    # several packs (one row) were a concatenation that XLA wrote in a kernel of its own.
+    return jnp.stack(row_floats, axis=1), total(ints)

@@ -382,13 +382,13 @@ def test_fused_kernel_matches_a_python_loop(rows, batch, size, seed):
 
 @pytest.mark.parametrize(
     ("rows", "batch", "size", "seed"),
-    # Seeds drawn for masks of every density: 2%, every entry, 50%, 2%, 50%.
-    [(2, 3000, 16, 0), (2, 3000, 5, 1), (1, 4095, 5, 0), (2, 2049, 16, 2), (2, 4000, 1, 0)],
+    # Seeds drawn for masks of every density: every entry, 50%, 2%, 50%, none.
+    [(2, 1000, 16, 2), (2, 1000, 5, 6), (1, 1023, 5, 6), (2, 513, 16, 1), (2, 999, 1, 1)],
 )
 def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
-    # A batch that is not a power of two is read in two blocks, the second overlapping the
-    # first (in all but one entry at 2,049): the arrival ranks, the moments and the
-    # ring writes across blocks, against the same loop.
+    # A batch of one program that is not a power of two is read in two blocks, the second
+    # overlapping the first (in all but one entry at 513): the arrival ranks, the moments
+    # and the ring writes across blocks, against the same loop.
     from jaxmetrics._stream import _kernel
 
     assert _kernel.blocking(batch)[1] == 2
@@ -415,15 +415,53 @@ def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
     # same loop.
     from jaxmetrics._stream import _kernel
 
-    assert _kernel.chunking(batch)[1] > 1
+    assert _kernel.chunking(rows, batch)[1] > 1
     check_fused_kernel(rows, batch, size, seed)
 
 
-def check_fused_kernel(rows, batch, size, seed):
+@pytest.mark.parametrize(
+    ("rows", "batch", "size", "seed", "chunks"),
+    [
+        (1, 4096, 16, 0, 4),
+        (1, 4096, 3000, 1, 4),
+        (3, 3000, 1100, 2, 3),
+        (7, 1025, 5, 3, 2),
+        (2, 2048, 1, 4, 2),
+        (1, 1024, 16, 5, 1),
+        (10, 4096, 16, 6, 4),
+        (32, 4096, 3, 9, 4),
+        (33, 4096, 3, 10, 1),
+        (42, 3000, 3, 11, 3),
+        (43, 3000, 3, 12, 1),
+        (1, 4097, 2000, 7, 5),
+        (2, 24577, 5000, 8, 13),
+    ],
+)
+def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chunks):
+    # Past 1,024 entries a row is chunked (up to 4,096 entries, while that makes at most
+    # 128 programs); up to 4,096 each chunk's program counts the row's mask around it
+    # itself (in one block, or two at 3,000 and 1,025), past that (4,097) it reads the
+    # chunks' counts. Masks drawn per 1,024 entries as empty, full or
+    # in between, so that whole chunks are empty or full; rings smaller than a chunk, and
+    # larger than several.
+    from jaxmetrics._stream import _kernel
+
+    assert _kernel.chunking(rows, batch)[1] == chunks
+    check_fused_kernel(rows, batch, size, seed, pieces=1024)
+
+
+def check_fused_kernel(rows, batch, size, seed, pieces=None):
+    """`pieces`: the mask's density drawn per run of that many entries of a row (else one
+    density for the whole batch)."""
     from jaxmetrics._stream import _kernel
 
     rng = np.random.default_rng(seed)
-    mask = rng.random((rows, batch)) < rng.choice([0.0, 0.02, 0.5, 1.0])
+    densities = [0.0, 0.02, 0.5, 1.0]
+    if pieces is None:
+        mask = rng.random((rows, batch)) < rng.choice(densities)
+    else:
+        runs = rng.choice(densities, (rows, -(-batch // pieces)))
+        mask = rng.random((rows, batch)) < np.repeat(runs, pieces, axis=1)[:, :batch]
     level = rng.choice([1e4, 1e6])
     values = (level + rng.normal(size=(rows, batch))).astype(np.float32)
     nonfinite = rng.integers(0, 2, (rows, batch), dtype=np.int32)
