@@ -13,12 +13,12 @@ aliased to the outputs; other rows never touch a row's slots). With the full spe
 then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
 
 A row longer than `ONE_PROGRAM` is folded by one program per chunk of it (`chunking`), so
-that the GPU's multiprocessors share the batch. A chunk's program needs the row's masked-in entries
-before and after it, from which it knows how many of the row's arrivals follow each of its
-own (its ranks, EMA weights and ring slots are the row's): up to `COUNTED_HERE` entries
-it counts them in the row's mask itself, past that one small XLA reduction first counts
-each chunk's. The chunks' partial statistics are combined after the kernel, in the kernel
-that updates the per-row state.
+that the GPU's multiprocessors share the batch. A chunk's program needs the row's masked-in
+entries before and after it, from which it knows how many of the row's arrivals follow
+each of its own (its ranks, EMA weights and ring slots are the row's): up to
+`COUNTED_HERE` entries it counts them in the row's mask itself, past that one small XLA
+reduction first counts each chunk's. The chunks' partial statistics are combined after the
+kernel, in the kernel that updates the per-row state.
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
@@ -52,9 +52,9 @@ def chunking(rows: int, batch: int) -> tuple[int, int]:
     of `batch`: a row past `COUNTED_HERE` entries in chunks of 1,024 entries (2,048 past
     16,384) whose partial statistics `fold` combines, a shorter one past `ONE_PROGRAM` in
     chunks of 1,024 while that makes at most `PROGRAMS` programs, else in one. A
-    program's time is mostly latency that grows with its entries (4.4 us for 4,096 on an
-    H100), so ten rows of 4,096 run faster as forty programs; a hundred rows already
-    cover the GPU, and four hundred programs run slower than a hundred. Past
+    program's time is mostly latency that grows with its entries, so ten rows of 4,096
+    run faster as forty programs; a hundred rows already cover the GPU, and four hundred
+    programs run slower than a hundred (docs/benchmarks.md, "Scaling"). Past
     `COUNTED_HERE`, one program per long row leaves most of the GPU idle, and smaller
     chunks make more programs and partial statistics than the GPU gains from."""
     if batch > COUNTED_HERE:
