@@ -297,6 +297,14 @@ class Metrics:
             "the term values",
         )
         done = like(done, state.running.steps[0], "done")
+        if 1 < x.shape[0] <= 4:
+            # On a GPU, XLA fuses a stack of 2 to 4 term rows into each kernel that reads
+            # it, so that every input of the batch's fold became a kernel of its own (six
+            # at 3 terms); from 5 rows on it writes the stack once, and a barrier on those
+            # only adds a kernel (docs/benchmarks.md has the times).
+            x = jax.lax.platform_dependent(
+                x, cuda=jax.lax.optimization_barrier, default=lambda a: a
+            )
         prop = jnp.asarray(self._rows.ep_propagate)[:, None]
         finite = jnp.isfinite(x)
         running, values, any_step = _episode.step(

@@ -15,11 +15,13 @@ then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times
 A group row (`_stream.Selected`) is read from its metric's row of the batch and the group
 index, its mask built as it is loaded; the batch is not copied per group.
 
-A row longer than `ONE_PROGRAM` is folded by one program per chunk of it, so that the
-GPU's multiprocessors share the batch: one small XLA reduction first counts each chunk's
-masked-in entries, from which a chunk's program knows how many of the row's arrivals
-follow it (its ranks, EMA weights and ring slots are the row's), and the chunks' partial
-statistics are combined after the kernel, in the kernel that updates the per-row state.
+A row longer than `ONE_PROGRAM` is folded by one program per chunk of it (`chunking`), so
+that the GPU's multiprocessors share the batch. A chunk's program needs the row's masked-in
+entries before and after it, from which it knows how many of the row's arrivals follow
+each of its own (its ranks, EMA weights and ring slots are the row's): up to
+`COUNTED_HERE` entries it counts them in the row's mask itself, past that one small XLA
+reduction first counts each chunk's. The chunks' partial statistics are combined after the
+kernel, in the kernel that updates the per-row state.
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
@@ -39,7 +41,10 @@ from ._selected import Selected
 
 MIN_BATCH = 32
 MAX_BATCH = 65536
-ONE_PROGRAM = 2048
+ONE_PROGRAM = 1024
+COUNTED_HERE = 4096
+PROGRAMS = 128
+ALWAYS_CHUNKED = 2048
 
 
 def fits(batch: int, dtype) -> bool:
@@ -49,18 +54,25 @@ def fits(batch: int, dtype) -> bool:
     return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
 
 
-def chunking(batch: int) -> tuple[int, int]:
-    """The entries one program folds and the number of programs per row of `batch`: a
-    row up to `ONE_PROGRAM` entries in one, a longer one in chunks of 1,024 entries
-    (2,048 past 16,384) whose partial statistics `fold` combines. One program per long
-    row leaves most of the GPU idle (ten rows, ten programs), and smaller chunks make
-    more programs and partial statistics than the GPU gains from. A chunk without any
-    masked-in entry costs little (it reads no value), which pays for the chunks' counts
-    and partial statistics from 4,096 entries, not at 2,048 (docs/benchmarks.md)."""
-    if batch <= ONE_PROGRAM:
-        return batch, 1
-    chunk = 1024 if batch <= 16384 else 2048
-    return chunk, -(-batch // chunk)
+def chunking(rows: int, batch: int) -> tuple[int, int]:
+    """The entries one program folds and the number of programs per row, for `rows` rows
+    of `batch`: a row past `COUNTED_HERE` entries in chunks of 1,024 entries (2,048 past
+    16,384) whose partial statistics `fold` combines; a shorter one past `ONE_PROGRAM` in
+    chunks of 1,024 where that makes at most `PROGRAMS` programs or the row is past
+    `ALWAYS_CHUNKED` entries; else in one. A program's time is mostly latency that grows
+    with its entries, so ten rows of 4,096 run faster as forty programs, and a chunk
+    without any masked-in entry (most chunks of group rows) costs little, which pays for
+    the chunks' partial statistics from 4,096 entries at any number of rows
+    (docs/benchmarks.md, "Scaling" and "Per-group statistics"). Past `COUNTED_HERE`, one
+    program per long row leaves most of the GPU idle, and smaller chunks make more
+    programs and partial statistics than the GPU gains from."""
+    if batch > COUNTED_HERE:
+        chunk = 1024 if batch <= 16384 else 2048
+        return chunk, -(-batch // chunk)
+    n = -(-batch // ONE_PROGRAM)
+    if n > 1 and (rows * n <= PROGRAMS or batch > ALWAYS_CHUNKED):
+        return ONE_PROGRAM, n
+    return batch, 1
 
 
 def blocking(batch: int) -> tuple[int, int]:
@@ -104,13 +116,37 @@ class EmaIn(NamedTuple):
     ema_off: jax.Array
 
 
+def _masked_in_around(mask_at, batch: int, lo, hi) -> tuple[jax.Array, jax.Array]:
+    """The masked-in entries of a row of `batch` entries (up to `COUNTED_HERE`) before
+    entry `lo` and from entry `hi` on (`[1, 1]` int32 each), read in `blocking`'s blocks
+    by `mask_at(start, n, fresh)` (the row's mask at `n` entries from `start`, those not
+    `fresh` masked out; None: all are fresh)."""
+    block, n_blocks = blocking(batch)
+    earlier = later = jnp.zeros((1, 1), jnp.int32)
+    for j in range(n_blocks):
+        start = min(j * block, batch - block)
+        at = jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) + start
+        m = mask_at(start, block, None if start == j * block else at >= j * block)
+        m = m.astype(jnp.int32)
+        earlier += jnp.sum(jnp.where(at < lo, m, 0), axis=1, keepdims=True)
+        later += jnp.sum(jnp.where(at >= hi, m, 0), axis=1, keepdims=True)
+    return earlier, later
+
+
 def _kernel(
-    *refs, ema: bool, rings: tuple[int, ...], packs: int, counted: bool, batch: int, grouped: bool
+    *refs,
+    ema: bool,
+    rings: tuple[int, ...],
+    packs: int,
+    counted: bool,
+    rows: int,
+    batch: int,
+    grouped: bool,
 ):
-    """One chunk of a batch row (`chunking`); `rings` are the ring sizes, `packs` the
-    counted rows per batch row (`counted`: read from a counted input; else none has
-    any). `table` holds the row's static ints (`Table`); `counts` (past one chunk) the
-    row's masked-in entries per chunk.
+    """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
+    sizes, `packs` the counted rows per batch row (`counted`: read from a counted input;
+    else none has any). `table` holds the row's static ints (`Table`); `counts` (chunks
+    past `COUNTED_HERE` entries) the row's masked-in entries per chunk.
 
     The row is read from its source row of the batch (`Selected`), with its mask built
     as it is read: the source's mask and, for a group row (`grouped`), its group index
@@ -124,15 +160,16 @@ def _kernel(
     sums what needs no arrival rank, the second takes the ranks, the moments around the
     first pass's mean, the EMA's weighted sum and the ring writes. A chunk without any
     (at most steps, most chunks of group rows) skips both. A chunk's ranks add the row's
-    entries in later chunks (from `counts`), and its EMA weights and ring slots follow
-    from those global ranks. Its mean deviation is also written off a pivot that every
-    chunk of the row shares (the row's first value), so that the chunks' means combine
-    without the rounding of means far from zero."""
+    masked-in entries in later chunks (counted in the row's mask by `_masked_in_around`,
+    or from `counts`), and its EMA weights and ring slots follow from those global ranks
+    and the row's count. Its mean deviation is also written off a pivot that every chunk
+    of the row shares (the row's first value), so that the chunks' means combine without
+    the rounding of means far from zero."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
-    chunk, n_chunks = chunking(batch)
-    if n_chunks > 1:
+    chunk, n_chunks = chunking(rows, batch)
+    if n_chunks > 1 and batch > COUNTED_HERE:
         counts_ref, *refs = refs
     if counted:
         counted_ref, *refs = refs
@@ -148,9 +185,10 @@ def _kernel(
     src, kind, group = entry(Table.SRC), entry(Table.KIND), entry(Table.GROUP)
     counted_rows = [entry(Table.COUNTED + p) for p in range(packs)]
 
-    def read(start, n: int, fresh) -> tuple[list[jax.Array], Callable[[], jax.Array]]:
-        """The row's mask, non-finite flags and counted rows at `n` entries from `start`,
-        those not `fresh` (None: all are) masked out, and what reads its values there."""
+    def reader(start, n: int, fresh) -> tuple[Callable[..., jax.Array], jax.Array | None]:
+        """What reads a row of an input at `n` entries from `start`, those not `fresh`
+        (None: all are) masked out, and where the group index there is the row's group
+        (None: not a group row)."""
         cols = pl.ds(start, n)
         full = jnp.ones((1, n), jnp.bool_) if fresh is None else fresh
 
@@ -159,15 +197,28 @@ def _kernel(
                 return ref[pl.ds(row, 1), cols]
             return plt.load(ref.at[pl.ds(row, 1), cols], mask=where, other=jnp.zeros((), ref.dtype))
 
+        if not grouped:
+            return at, None
+        return at, (kind < 0) | (at(ids_ref, jnp.maximum(kind, 0)) == group)
+
+    def mask_at(start, n: int, fresh) -> jax.Array:
+        """The row's mask at `n` entries from `start` (`reader`)."""
+        at, match = reader(start, n, fresh)
+        m = at(m_ref, src)
+        return m if match is None else m & match
+
+    def read(start, n: int, fresh) -> tuple[list[jax.Array], Callable[[], jax.Array]]:
+        """The row's mask, non-finite flags and counted rows at `n` entries from `start`
+        (`reader`), and what reads its values there."""
+        at, match = reader(start, n, fresh)
         m, bad = at(m_ref, src), at(bad_ref, src)
         values = functools.partial(at, x_ref, src)
-        if grouped:
-            mine = at(ids_ref, jnp.maximum(kind, 0)) == group
-            match = (kind < 0) | mine
+        if match is not None:
             m = m & match
             bad = bad * match.astype(bad.dtype)
         if not counted:
             return [m, bad, *(jnp.zeros((1, n), jnp.int32) for _ in counted_rows)], values
+        full = jnp.ones((1, n), jnp.bool_) if fresh is None else fresh
         sums = [at(counted_ref, jnp.maximum(c, 0), full & (c >= 0)) for c in counted_rows]
         return [m, bad, *sums], values
 
@@ -197,10 +248,14 @@ def _kernel(
     else:
         chunk_id = pl.program_id(1)
         loaded = load_chunk(chunk_id)
-        counts = counts_ref[...]
-        later_chunks = jax.lax.broadcasted_iota(jnp.int32, counts.shape, 1) > chunk_id
-        later = row_sum(jnp.where(later_chunks, counts, 0))
-        row_total = row_sum(counts)
+        if batch > COUNTED_HERE:
+            counts = counts_ref[...]
+            at = jax.lax.broadcasted_iota(jnp.int32, counts.shape, 1)
+            earlier = row_sum(jnp.where(at < chunk_id, counts, 0))
+            later = row_sum(jnp.where(at > chunk_id, counts, 0))
+        else:
+            lo = chunk_id * chunk
+            earlier, later = _masked_in_around(mask_at, batch, lo, jnp.minimum(lo + chunk, batch))
 
     def blocks(body, init, *per_block):
         """`body(*a block's mask, flags, counted..., *its entries of per_block, carry)`
@@ -236,6 +291,8 @@ def _kernel(
     total, nbad, csums = blocks(counts, (izero, izero, (izero,) * packs))
     if later is None:
         later, row_total = izero, total
+    else:
+        row_total = earlier + total + later
     k = jnp.maximum(total, 1).astype(jnp.float32)
     if ema:
         c = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
@@ -355,7 +412,7 @@ def fold(
     slowly (Pallas' interpret mode).
     """
     rows, width = batch.rows, batch.batch
-    chunk, n_chunks = chunking(width)
+    chunk, n_chunks = chunking(rows, width)
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
     at = np.arange(rows, dtype=np.int32)[:, None] + rows * np.arange(packs, dtype=np.int32)
     table = [coeff.view(np.int32)[:, None], batch.table(), np.where(at < counted.shape[0], at, -1)]
@@ -385,7 +442,7 @@ def fold(
     ]
     if batch.grouped:
         args.append((batch.ids, whole(batch.ids)))
-    if n_chunks > 1:
+    if n_chunks > 1 and width > COUNTED_HERE:
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
     if packs and counted.shape[0]:
         # Padded to whole multiples of the source rows: shaped like the batch, XLA writes
@@ -411,6 +468,7 @@ def fold(
         rings=tuple(r.data.shape[1] for r in rings),
         packs=packs,
         counted=bool(packs and counted.shape[0]),
+        rows=rows,
         batch=width,
         grouped=batch.grouped,
     )
@@ -479,5 +537,6 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
         total(floats[..., 4]) + jnp.maximum(s2 - s1 * mean, 0),
         total(floats[..., 5]),
     ]
-    row_ints = [total(ints[..., i]) for i in range(ints.shape[2])]
-    return jnp.stack(row_floats, axis=1), jnp.stack(row_ints, axis=1)
+    # The ints summed as one [R, I] array: stacked from [R] columns, the counted sums of
+    # several packs (one row) were a concatenation that XLA wrote in a kernel of its own.
+    return jnp.stack(row_floats, axis=1), total(ints)

@@ -382,16 +382,16 @@ def test_fused_kernel_matches_a_python_loop(rows, batch, size, seed):
 
 @pytest.mark.parametrize(
     ("rows", "batch", "size", "seed"),
-    # Seeds drawn for masks of every density: 2%, every entry, 50%, 2%, 50%.
-    [(2, 1500, 16, 2), (2, 2000, 5, 1), (1, 2047, 5, 4), (2, 1025, 16, 7), (2, 1999, 1, 4)],
+    # Seeds drawn for masks of every density: every entry, 50%, 2%, 50%, none.
+    [(2, 1000, 16, 2), (2, 1000, 5, 6), (1, 1023, 5, 6), (2, 513, 16, 1), (2, 999, 1, 1)],
 )
 def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
-    # A batch that is not a power of two is read in two blocks, the second overlapping the
-    # first (in all but one entry at 1,025): the arrival ranks, the moments and the
-    # ring writes across blocks, against the same loop.
+    # A batch of one program that is not a power of two is read in two blocks, the second
+    # overlapping the first (in all but one entry at 513): the arrival ranks, the moments
+    # and the ring writes across blocks, against the same loop.
     from jaxmetrics._stream import _kernel
 
-    assert _kernel.chunking(batch) == (batch, 1)
+    assert _kernel.chunking(rows, batch) == (batch, 1)
     assert _kernel.blocking(batch)[1] == 2
     check_fused_kernel(rows, batch, size, seed)
 
@@ -418,16 +418,18 @@ def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
     # against the same loop.
     from jaxmetrics._stream import _kernel
 
-    assert _kernel.chunking(batch)[1] > 1
+    assert _kernel.chunking(rows, batch)[1] > 1
     check_fused_kernel(rows, batch, size, seed)
 
 
 @pytest.mark.parametrize(
     ("rows", "batch", "groups", "size", "seed"),
     # Seeds drawn for group indices in few groups, uniform, all in one group, uniform over
-    # 64 groups of 40 entries (most empty); past 2,048 (chunks): few, one, uniform. The
-    # masks are half full, or full at 4,097.
+    # 64 groups of 40 entries (most empty); in chunks counted in the kernel: uniform at
+    # 2,048 (every entry) and 3,000 entries (16 groups); in chunks counted by XLA (past
+    # 4,096): few, one, uniform. The masks are half full, or full at 4,097.
     [(2, 64, 3, 5, 4), (1, 300, 8, 16, 0), (2, 100, 2, 5, 6), (1, 40, 64, 3, 7)]
+    + [(2, 2048, 3, 16, 2), (1, 3000, 16, 700, 7)]
     + [(1, 4097, 3, 700, 2), (1, 9000, 5, 16, 0), (1, 9000, 2, 3000, 6)],
 )
 def test_fused_kernel_reads_group_rows_from_the_ungrouped_batch(rows, batch, groups, size, seed):
@@ -439,18 +441,56 @@ def test_fused_kernel_reads_group_rows_from_the_ungrouped_batch(rows, batch, gro
     check_fused_kernel(rows, batch, size, seed, groups)
 
 
-def check_fused_kernel(rows, batch, size, seed, groups=0):
+@pytest.mark.parametrize(
+    ("rows", "batch", "size", "seed", "chunks"),
+    [
+        (1, 4096, 16, 0, 4),
+        (1, 4096, 3000, 1, 4),
+        (3, 3000, 1100, 2, 3),
+        (7, 1025, 5, 3, 2),
+        (2, 2048, 1, 4, 2),
+        (1, 1024, 16, 5, 1),
+        (10, 4096, 16, 6, 4),
+        (32, 4096, 3, 9, 4),
+        (64, 2048, 3, 10, 2),
+        (33, 4096, 3, 13, 4),
+        (42, 3000, 3, 11, 3),
+        (65, 2048, 3, 12, 1),
+        (1, 4097, 2000, 7, 5),
+        (2, 24577, 5000, 8, 13),
+    ],
+)
+def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chunks):
+    # Past 1,024 entries a row is chunked (up to 2,048 entries while that makes at most
+    # 128 programs, always past 2,048); up to 4,096 each chunk's program counts the row's
+    # mask around it itself (in one block, or two at 3,000 and 1,025), past that (4,097)
+    # it reads the chunks' counts. Masks drawn per 1,024 entries as empty, full or
+    # in between, so that whole chunks are empty or full; rings smaller than a chunk, and
+    # larger than several.
+    from jaxmetrics._stream import _kernel
+
+    assert _kernel.chunking(rows, batch)[1] == chunks
+    check_fused_kernel(rows, batch, size, seed, pieces=1024)
+
+
+def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None):
     """The kernel against a loop over each row (see the tests above). With `groups`, the
     batch's rows are each of `rows` source rows over every entry and then masked to each
     of `groups` groups (`Selected`), the group index drawn uniformly (out of range on
     either side included), all in one group, or in a few groups (the others empty); the
-    loop reads the rows masked in numpy."""
+    loop reads the rows masked in numpy. `pieces`: the mask's density drawn per run of
+    that many entries of a row (else one density for the whole batch)."""
     from jaxmetrics import _stream
     from jaxmetrics._stream import _kernel
 
     rng = np.random.default_rng(seed)
     sources = rows
-    ok = rng.random((sources, batch)) < rng.choice([0.0, 0.02, 0.5, 1.0])
+    densities = [0.0, 0.02, 0.5, 1.0]
+    if pieces is None:
+        ok = rng.random((sources, batch)) < rng.choice(densities)
+    else:
+        runs = rng.choice(densities, (sources, -(-batch // pieces)))
+        ok = rng.random((sources, batch)) < np.repeat(runs, pieces, axis=1)[:, :batch]
     level = rng.choice([1e4, 1e6])
     x = (level + rng.normal(size=(sources, batch))).astype(np.float32)
     flags = rng.integers(0, 2, (sources, batch), dtype=np.int32)
