@@ -18,9 +18,9 @@ index, its mask built as it is loaded; the batch is not copied per group.
 A row longer than `ONE_PROGRAM` is folded by one program per chunk of it (`chunking`), so
 that the GPU's multiprocessors share the batch. A chunk's program needs the row's masked-in
 entries before and after it, from which it knows how many of the row's arrivals follow
-each of its own (its ranks, EMA weights and ring slots are the row's): up to
-`COUNTED_HERE` entries it counts them in the row's mask itself, past that one small XLA
-reduction first counts each chunk's. The chunks' partial statistics are combined after the
+each of its own (its ranks, EMA weights and ring slots are the row's): it counts them in
+the row's mask itself, or one small XLA reduction first counts each chunk's (`chunking`
+says which). The chunks' partial statistics are combined after the
 kernel, in the kernel that updates the per-row state.
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
@@ -54,25 +54,39 @@ def fits(batch: int, dtype) -> bool:
     return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
 
 
-def chunking(rows: int, batch: int) -> tuple[int, int]:
-    """The entries one program folds and the number of programs per row, for `rows` rows
-    of `batch`: a row past `COUNTED_HERE` entries in chunks of 1,024 entries (2,048 past
-    16,384) whose partial statistics `fold` combines; a shorter one past `ONE_PROGRAM` in
-    chunks of 1,024 where that makes at most `PROGRAMS` programs or the row is past
-    `ALWAYS_CHUNKED` entries; else in one. A program's time is mostly latency that grows
-    with its entries, so ten rows of 4,096 run faster as forty programs, and a chunk
-    without any masked-in entry (most chunks of group rows) costs little, which pays for
-    the chunks' partial statistics from 4,096 entries at any number of rows
-    (docs/benchmarks.md, "Scaling" and "Per-group statistics"). Past `COUNTED_HERE`, one
-    program per long row leaves most of the GPU idle, and smaller chunks make more
-    programs and partial statistics than the GPU gains from."""
+class Chunking(NamedTuple):
+    """How a row is folded (`chunking`): by `n` programs of `size` entries each (one
+    program: the whole row), the chunks' masked-in entries counted by each program in the
+    row's mask itself (`counted_here`) or by an XLA reduction first (`chunk_counts`)."""
+
+    size: int
+    n: int
+    counted_here: bool
+
+
+def chunking(rows: int, batch: int, grouped: bool = False) -> Chunking:
+    """How each of `rows` rows of `batch` entries is folded; `grouped`: the rows include
+    group rows. A row past `COUNTED_HERE` entries in chunks of 1,024 entries (2,048 past
+    16,384) whose partial statistics `fold` combines, counted by XLA: one program per long
+    row leaves most of the GPU idle, and smaller chunks make more programs and partial
+    statistics than the GPU gains from. A shorter one past `ONE_PROGRAM` in chunks of
+    1,024 where that makes at most `PROGRAMS` programs, each counting the row's mask
+    itself: a program's time is mostly latency that grows with its entries, so ten rows
+    of 4,096 run faster as forty programs. Group rows past `ALWAYS_CHUNKED` entries are
+    chunked at any number of rows, counted by XLA: a chunk without any masked-in entry
+    (most chunks of group rows) costs little, where every program reading its whole row's
+    mask costs more than the XLA reduction. Else one program per row: four hundred
+    programs of ungrouped rows run no faster than a hundred (docs/benchmarks.md,
+    "Scaling" and "Per-group statistics")."""
     if batch > COUNTED_HERE:
-        chunk = 1024 if batch <= 16384 else 2048
-        return chunk, -(-batch // chunk)
+        size = 1024 if batch <= 16384 else 2048
+        return Chunking(size, -(-batch // size), False)
     n = -(-batch // ONE_PROGRAM)
-    if n > 1 and (rows * n <= PROGRAMS or batch > ALWAYS_CHUNKED):
-        return ONE_PROGRAM, n
-    return batch, 1
+    if n > 1 and rows * n <= PROGRAMS:
+        return Chunking(ONE_PROGRAM, n, True)
+    if n > 1 and grouped and batch > ALWAYS_CHUNKED:
+        return Chunking(ONE_PROGRAM, n, False)
+    return Chunking(batch, 1, False)
 
 
 def blocking(batch: int) -> tuple[int, int]:
@@ -117,7 +131,7 @@ class EmaIn(NamedTuple):
 
 
 def _masked_in_around(mask_at, batch: int, lo, hi) -> tuple[jax.Array, jax.Array]:
-    """The masked-in entries of a row of `batch` entries (up to `COUNTED_HERE`) before
+    """The masked-in entries of a row of `batch` entries (`Chunking.counted_here`) before
     entry `lo` and from entry `hi` on (`[1, 1]` int32 each), read in `blocking`'s blocks
     by `mask_at(start, n, fresh)` (the row's mask at `n` entries from `start`, those not
     `fresh` masked out; None: all are fresh)."""
@@ -146,7 +160,7 @@ def _kernel(
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
     sizes, `packs` the counted rows per batch row (`counted`: read from a counted input;
     else none has any). `table` holds the row's static ints (`Table`); `counts` (chunks
-    past `COUNTED_HERE` entries) the row's masked-in entries per chunk.
+    not `counted_here`) the row's masked-in entries per chunk.
 
     The row is read from its source row of the batch (`Selected`), with its mask built
     as it is read: the source's mask and, for a group row (`grouped`), its group index
@@ -168,8 +182,8 @@ def _kernel(
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
-    chunk, n_chunks = chunking(rows, batch)
-    if n_chunks > 1 and batch > COUNTED_HERE:
+    chunk, n_chunks, counted_here = chunking(rows, batch, grouped)
+    if n_chunks > 1 and not counted_here:
         counts_ref, *refs = refs
     if counted:
         counted_ref, *refs = refs
@@ -248,7 +262,7 @@ def _kernel(
     else:
         chunk_id = pl.program_id(1)
         loaded = load_chunk(chunk_id)
-        if batch > COUNTED_HERE:
+        if not counted_here:
             counts = counts_ref[...]
             at = jax.lax.broadcasted_iota(jnp.int32, counts.shape, 1)
             earlier = row_sum(jnp.where(at < chunk_id, counts, 0))
@@ -412,7 +426,7 @@ def fold(
     slowly (Pallas' interpret mode).
     """
     rows, width = batch.rows, batch.batch
-    chunk, n_chunks = chunking(rows, width)
+    chunk, n_chunks, counted_here = chunking(rows, width, batch.grouped)
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
     at = np.arange(rows, dtype=np.int32)[:, None] + rows * np.arange(packs, dtype=np.int32)
     table = [coeff.view(np.int32)[:, None], batch.table(), np.where(at < counted.shape[0], at, -1)]
@@ -442,7 +456,7 @@ def fold(
     ]
     if batch.grouped:
         args.append((batch.ids, whole(batch.ids)))
-    if n_chunks > 1 and width > COUNTED_HERE:
+    if n_chunks > 1 and not counted_here:
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
     if packs and counted.shape[0]:
         # Padded to whole multiples of the source rows: shaped like the batch, XLA writes

@@ -391,7 +391,7 @@ def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     # and the ring writes across blocks, against the same loop.
     from jaxmetrics._stream import _kernel
 
-    assert _kernel.chunking(rows, batch) == (batch, 1)
+    assert _kernel.chunking(rows, batch) == (batch, 1, False)
     assert _kernel.blocking(batch)[1] == 2
     check_fused_kernel(rows, batch, size, seed)
 
@@ -426,10 +426,11 @@ def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
     ("rows", "batch", "groups", "size", "seed"),
     # Seeds drawn for group indices in few groups, uniform, all in one group, uniform over
     # 64 groups of 40 entries (most empty); in chunks counted in the kernel: uniform at
-    # 2,048 (every entry) and 3,000 entries (16 groups); in chunks counted by XLA (past
-    # 4,096): few, one, uniform. The masks are half full, or full at 4,097.
+    # 2,048 (every entry) and 3,000 entries (16 groups); in chunks counted by XLA: 65 rows
+    # of 2,100 (uniform over 64 groups; masks full and 2%) and past 4,096 (few, one,
+    # uniform). The other masks are half full, or full at 4,097.
     [(2, 64, 3, 5, 4), (1, 300, 8, 16, 0), (2, 100, 2, 5, 6), (1, 40, 64, 3, 7)]
-    + [(2, 2048, 3, 16, 2), (1, 3000, 16, 700, 7)]
+    + [(2, 2048, 3, 16, 2), (1, 3000, 16, 700, 7), (1, 2100, 64, 5, 1), (1, 2100, 64, 5, 3)]
     + [(1, 4097, 3, 700, 2), (1, 9000, 5, 16, 0), (1, 9000, 2, 3000, 6)],
 )
 def test_fused_kernel_reads_group_rows_from_the_ungrouped_batch(rows, batch, groups, size, seed):
@@ -452,24 +453,23 @@ def test_fused_kernel_reads_group_rows_from_the_ungrouped_batch(rows, batch, gro
         (1, 1024, 16, 5, 1),
         (10, 4096, 16, 6, 4),
         (32, 4096, 3, 9, 4),
-        (64, 2048, 3, 10, 2),
-        (33, 4096, 3, 13, 4),
+        (33, 4096, 3, 10, 1),
         (42, 3000, 3, 11, 3),
-        (65, 2048, 3, 12, 1),
+        (43, 3000, 3, 12, 1),
         (1, 4097, 2000, 7, 5),
         (2, 24577, 5000, 8, 13),
     ],
 )
 def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chunks):
-    # Past 1,024 entries a row is chunked (up to 2,048 entries while that makes at most
-    # 128 programs, always past 2,048); up to 4,096 each chunk's program counts the row's
-    # mask around it itself (in one block, or two at 3,000 and 1,025), past that (4,097)
-    # it reads the chunks' counts. Masks drawn per 1,024 entries as empty, full or
+    # Past 1,024 entries a row is chunked (up to 4,096 entries, while that makes at most
+    # 128 programs); up to 4,096 each chunk's program counts the row's mask around it
+    # itself (in one block, or two at 3,000 and 1,025), past that (4,097) it reads the
+    # chunks' counts. Masks drawn per 1,024 entries as empty, full or
     # in between, so that whole chunks are empty or full; rings smaller than a chunk, and
     # larger than several.
     from jaxmetrics._stream import _kernel
 
-    assert _kernel.chunking(rows, batch)[1] == chunks
+    assert _kernel.chunking(rows, batch)[1:] == (chunks, chunks > 1 and batch <= 4096)
     check_fused_kernel(rows, batch, size, seed, pieces=1024)
 
 
