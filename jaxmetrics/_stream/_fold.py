@@ -182,13 +182,15 @@ def _fold_rows(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted
     `counts_width`)."""
     if (plan.ema_rows or plan.windows) and fused and _kernel.fits(batch.batch, plan.dtype):
         return _fold_fused(plan, s, batch, shift, counted, interpret)
-    return _fold(plan, s, *batch.dense(), shift, _counted_rows(plan, counted))
+    return _fold_dense(plan, s, batch, shift, counted)
 
 
-def _counted_rows(plan: StreamPlan, counted: jax.Array) -> jax.Array:
-    """`counted[C, B]` padded to `counts_width` rows."""
+def _fold_dense(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted):
+    """`_fold` of the rows `batch` selects, as arrays, with `counted` padded to
+    `counts_width` rows."""
     width = counts_width(plan, counted.shape[0])
-    return jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
+    counted = jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
+    return _fold(plan, s, *batch.dense(), shift, counted)
 
 
 def _ranked(plan: StreamPlan) -> tuple[int, ...]:
@@ -494,7 +496,7 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
         return stats, ema_data, tuple(data), *hists
 
     def reference(s, batch, shift, counted):
-        return _fold(plan, s, *batch.dense(), shift, _counted_rows(plan, counted))
+        return _fold_dense(plan, s, batch, shift, counted)
 
     args = (s, batch, shift, counted)
     if interpret:
@@ -546,9 +548,7 @@ def _hist_add_selected(g: HistGroup, h: Count, zero: jax.Array, batch: Selected,
     for r, (src, kind, group) in enumerate(zip(sel.src, sel.kind, sel.group)):
         lut[pairs.index((src, kind)), group if kind >= 0 else 0] = r
     src, kind = (np.array(a, np.int32) for a in zip(*pairs))
-    k = sel.ids.shape[0]
-    ids = jnp.concatenate([sel.ids, jnp.zeros_like(sel.ids[:1])])  # row K: 0, every entry
-    gid = jnp.take(ids, np.where(kind < 0, k, kind), axis=0)
+    gid = sel.group_index(kind)
     inside = (gid >= 0) & (gid < width)
     at = jnp.asarray(lut)[np.arange(len(pairs))[:, None], jnp.clip(gid, 0, width - 1)]
     row = jnp.where(inside, at, n)

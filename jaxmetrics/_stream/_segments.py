@@ -185,8 +185,9 @@ def _segment_batch(
     dt = values.dtype
     sources, width = shift.shape
     size = sources * width
-    # One flat slot per source and group (an index pair per entry scatters at half the
-    # speed on a CPU); `size` is past every slot: entries scattered there are dropped.
+    # One flat slot per source and group (an index pair per entry scatters slower on a
+    # CPU: docs/benchmarks.md); `size` is past every slot: entries scattered there are
+    # dropped.
     first = jnp.arange(0, size, width, dtype=jnp.int32)[:, None]
     inside = (group >= 0) & (group < jnp.asarray(groups)[:, None])
     slot = jnp.where(inside, first + group, size).reshape(-1)

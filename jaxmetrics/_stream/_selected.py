@@ -77,14 +77,18 @@ class Selected:
             self, values=fn(self.values), ok=fn(self.ok), bad=fn(self.bad), ids=fn(self.ids)
         )
 
+    def group_index(self, kinds) -> jax.Array:
+        """Per grouping in `kinds` (-1: none), its group index (`[n, B]` int32); 0 for
+        every entry where none, so that a row of every entry is group 0 of it."""
+        ids = jnp.concatenate([self.ids, jnp.zeros_like(self.ids[:1])])
+        kinds = np.asarray(kinds, np.int32)
+        return jnp.take(ids, np.where(kinds < 0, self.ids.shape[0], kinds), axis=0)
+
     def dense(self) -> tuple[jax.Array, jax.Array, jax.Array]:
         """The rows as arrays `[R, B]`: values, mask and int32 non-finite flags."""
         if not self.grouped:
             return tuple(take_rows(self.src, a) for a in (self.values, self.ok, self.bad))
         src = np.asarray(self.src, np.int32)
         take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
-        # Row K of `ids` is 0 for every entry: rows of every entry match it as group 0.
-        ids = jnp.concatenate([self.ids, jnp.zeros_like(self.ids[:1])])
-        kind = np.where(np.asarray(self.kind) < 0, self.ids.shape[0], self.kind).astype(np.int32)
-        match = jnp.take(ids, kind, axis=0) == jnp.asarray(self.group, jnp.int32)[:, None]
+        match = self.group_index(self.kind) == jnp.asarray(self.group, jnp.int32)[:, None]
         return take(self.values), take(self.ok) & match, take(self.bad) * match.astype(jnp.int32)
