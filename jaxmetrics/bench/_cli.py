@@ -285,7 +285,19 @@ def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace
     return dataclasses.replace(base, **over), a
 
 
+# XLA captures a loop body in a CUDA graph only from this many kernels on (default 5);
+# below it the host launches each kernel and waits on the loop condition every step. A
+# rollout's body always holds the env step's kernels too, so the update's own scans here
+# run with every body captured, as in a rollout (docs/benchmarks.md, "In a loop with an
+# env step"). Set before the first use of the backend; an XLA_FLAGS that names the
+# threshold keeps its own.
+GRAPH_FLAG = "--xla_gpu_graph_min_graph_size"
+
+
 def main(argv: Sequence[str] | None = None) -> list[Table]:
+    flags = os.environ.get("XLA_FLAGS", "")
+    if GRAPH_FLAG not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {GRAPH_FLAG}=1".strip()
     config, args = parse(argv)
     if args.render is not None:
         _render.render_file(args.render)

@@ -284,9 +284,10 @@ def source(name: str, doc: dict[str, Any]) -> str:
     dev = env["device"]
     device = dev["kind"] + (f" x{dev['count']}" if dev["count"] > 1 else "")
     tree = f", tree `{env['git_commit'][:7]}`" if env.get("git_commit") else ""
+    flags = f" (`XLA_FLAGS={env['xla_flags']}`)" if env.get("xla_flags") else ""
     return (
         f"`{name}`: {device}, {env['date'][:10]}{tree}; {_versions(env['versions'])}; "
-        f"`{env['command']}`."
+        f"`{env['command']}`{flags}."
     )
 
 
