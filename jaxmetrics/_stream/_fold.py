@@ -71,8 +71,8 @@ def add_with_counts(
     its first C entries. The sums are taken in the batch's own reduction and added in
     the per-row fields' kernel, where separate counts would be two more kernels. `fused`
     lets a CUDA GPU fold the batch (its reduction, arrival ranks, EMA sum and ring
-    writes) in one kernel of our own (`_kernel`, where the spec has an EMA or a window
-    and the batch fits it; histograms and sketches keep XLA's kernels); the caller
+    writes) in one kernel of our own (`_kernel`, where the spec has an EMA, a window or
+    group rows and the batch fits it; histograms and sketches keep XLA's kernels); the caller
     passes it only for a batch that is not split over devices, which that kernel cannot
     be. `interpret` (with `fused`) runs that kernel on
     any platform, in Pallas' interpret mode (slow: for tests).
@@ -177,10 +177,12 @@ def add_with_counts(
 
 
 def _fold_rows(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, fused, interpret):
-    """`_fold` of the rows `batch` selects, or where `fused` and the batch fits,
-    `_fold_fused`; `counted` is `[C, B]` (C up to the plan's rows times the packs of
-    `counts_width`)."""
-    if (plan.ema_rows or plan.windows) and fused and _kernel.fits(batch.batch, plan.dtype):
+    """`_fold` of the rows `batch` selects, or where `fused`, the batch fits and the
+    spec has an EMA, a window or group rows, `_fold_fused`; `counted` is `[C, B]` (C up
+    to the plan's rows times the packs of `counts_width`). Ungrouped rows of the period
+    statistics alone are one XLA reduction, as fast as the kernel (docs/benchmarks.md)."""
+    kernel_serves = plan.ema_rows or plan.windows or batch.grouped
+    if kernel_serves and fused and _kernel.fits(batch.batch, plan.dtype):
         return _fold_fused(plan, s, batch, shift, counted, interpret)
     return _fold_dense(plan, s, batch, shift, counted)
 

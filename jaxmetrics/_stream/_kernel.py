@@ -16,12 +16,13 @@ A group row (`_stream.Selected`) is read from its metric's row of the batch and 
 index, its mask built as it is loaded; the batch is not copied per group.
 
 A row longer than `ONE_PROGRAM` is folded by one program per chunk of it (`chunking`), so
-that the GPU's multiprocessors share the batch. A chunk's program needs the row's masked-in
-entries before and after it, from which it knows how many of the row's arrivals follow
-each of its own (its ranks, EMA weights and ring slots are the row's): it counts them in
-the row's mask itself, or one small XLA reduction first counts each chunk's (`chunking`
-says which). The chunks' partial statistics are combined after the
-kernel, in the kernel that updates the per-row state.
+that the GPU's multiprocessors share the batch. With an EMA or a ring, a chunk's program
+needs the row's masked-in entries before and after it, from which it knows how many of
+the row's arrivals follow each of its own (its ranks, EMA weights and ring slots are the
+row's): it counts them in the row's mask itself, or one small XLA reduction first counts
+each chunk's (`chunking` says which); without either it needs no rank. The chunks'
+partial statistics are combined after the kernel, in the kernel that updates the per-row
+state.
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
@@ -183,7 +184,8 @@ def _kernel(
     if grouped:
         ids_ref, *refs = refs
     chunk, n_chunks, counted_here = chunking(rows, batch, grouped)
-    if n_chunks > 1 and not counted_here:
+    ranked = ema or bool(rings)
+    if n_chunks > 1 and not counted_here and ranked:
         counts_ref, *refs = refs
     if counted:
         counted_ref, *refs = refs
@@ -258,6 +260,10 @@ def _kernel(
     row_sum = functools.partial(jnp.sum, axis=1, keepdims=True)
     if n_chunks == 1:
         loaded = [load(j) for j in range(n_blocks)]
+        later = None
+    elif not ranked:
+        # Without ranks a chunk's statistics are its own entries' only.
+        loaded = load_chunk(pl.program_id(1))
         later = None
     else:
         chunk_id = pl.program_id(1)
@@ -456,7 +462,7 @@ def fold(
     ]
     if batch.grouped:
         args.append((batch.ids, whole(batch.ids)))
-    if n_chunks > 1 and not counted_here:
+    if n_chunks > 1 and not counted_here and (ema is not None or rings):
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
     if packs and counted.shape[0]:
         # Padded to whole multiples of the source rows: shaped like the batch, XLA writes

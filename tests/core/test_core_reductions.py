@@ -443,6 +443,18 @@ def test_fused_kernel_reads_group_rows_from_the_ungrouped_batch(rows, batch, gro
 
 
 @pytest.mark.parametrize(
+    ("rows", "batch", "groups", "seed"),
+    # One program per row; chunks that would be counted in the kernel (3,000 entries, 1
+    # group: 4 rows x 3 chunks) and by XLA (2,100 entries, 64 groups; past 4,096).
+    [(2, 300, 3, 0), (1, 3000, 1, 7), (1, 2100, 64, 1), (2, 4097, 3, 2), (1, 9000, 2, 6)],
+)
+def test_fused_kernel_folds_group_rows_without_ranks(rows, batch, groups, seed):
+    # Period statistics alone (no EMA, no ring) need no arrival rank: a chunk folds its
+    # own entries, whatever the row's other chunks hold, and reads no chunk counts.
+    check_fused_kernel(rows, batch, 3, seed, groups, ranked=False)
+
+
+@pytest.mark.parametrize(
     ("rows", "batch", "size", "seed", "chunks"),
     [
         (1, 4096, 16, 0, 4),
@@ -473,8 +485,9 @@ def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chu
     check_fused_kernel(rows, batch, size, seed, pieces=1024)
 
 
-def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None):
-    """The kernel against a loop over each row (see the tests above). With `groups`, the
+def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None, ranked=True):
+    """The kernel against a loop over each row (see the tests above); without an EMA and
+    a ring where not `ranked` (its chunks then need no rank). With `groups`, the
     batch's rows are each of `rows` source rows over every entry and then masked to each
     of `groups` groups (`Selected`), the group index drawn uniformly (out of range on
     either side included), all in one group, or in a few groups (the others empty); the
@@ -530,14 +543,14 @@ def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None):
     pos = rng.integers(0, size, rows).astype(np.int32)
 
     def fold(m, v, bad, i, t, ta, w, o, sh, d, p):
-        ema = _kernel.EmaIn(coeff, w, o)
-        ring = _kernel.RingIn(d, p, ring_row, np.arange(rows))
+        ema = _kernel.EmaIn(coeff, w, o) if ranked else None
+        rings = (_kernel.RingIn(d, p, ring_row, np.arange(rows)),) if ranked else ()
         table = (tuple(int(a) for a in b) for b in (src, kind, group))
         selected = _stream.Selected(v, m, bad, i, *table)
-        return _kernel.fold(selected, sh, t, ta, packs, ema, (ring,), interpret=True)
+        return _kernel.fold(selected, sh, t, ta, packs, ema, rings, interpret=True)
 
     args = (ok, x, flags, ids, steps, counted, ema_w, ema_off, shift, data, pos)
-    stats, (got,) = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
+    stats, rings = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
     want_counted = np.zeros(rows * packs, np.int64)
     want_counted[: counted.shape[0]] = counted.sum(axis=1)
     np.testing.assert_array_equal(stats.counted_sums, want_counted)
@@ -560,9 +573,10 @@ def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None):
             if ring_row[r] >= 0 and later < size:
                 want_ring[ring_row[r], p] = (values[r, j : j + 1].view(np.uint32)[0], steps[r])
                 p = (p + 1) % size
-        np.testing.assert_allclose(
-            float(stats.ema[r]), want, rtol=1e-5, atol=1e-6 * scale + 1e-30, err_msg=str(r)
-        )
+        if ranked:
+            np.testing.assert_allclose(
+                float(stats.ema[r]), want, rtol=1e-5, atol=1e-6 * scale + 1e-30, err_msg=str(r)
+            )
         x = values[r, idx].astype(np.float64)
         assert (stats.min[r], stats.max[r]) == (x.min(initial=np.inf), x.max(initial=-np.inf))
         np.testing.assert_allclose(stats.sum[r], x.sum(), rtol=1e-6)
@@ -572,7 +586,10 @@ def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None):
         # shift of 0, the mean is as good as float32 holds the values (up to 1e6).
         np.testing.assert_allclose(stats.mean_dev[r], mean_d, rtol=2e-7, atol=1e-6)
         np.testing.assert_allclose(stats.m2[r], ((d - mean_d) ** 2).sum(), rtol=1e-5, atol=1e-6)
-    np.testing.assert_array_equal(np.asarray(got), want_ring)
+    if ranked:
+        np.testing.assert_array_equal(np.asarray(rings[0]), want_ring)
+    else:
+        assert stats.ema is None and rings == ()
 
 
 @pytest.mark.parametrize(
@@ -599,18 +616,22 @@ def test_fused_kernel_serves_float32_batches_of_32_to_65536(monkeypatch, num_env
 
 
 @pytest.mark.parametrize(
-    ("num_envs", "steps", "groups"),
-    [(64, 30, 0), (300, 10, 0), (3000, 10, 0), (4097, 10, 0), (12288, 10, 0)]
-    + [(300, 10, 3), (4097, 10, 3)],
+    ("num_envs", "steps", "groups", "ranked"),
+    [(64, 30, 0, True), (300, 10, 0, True), (3000, 10, 0, True), (4097, 10, 0, True)]
+    + [(12288, 10, 0, True), (300, 10, 3, True), (4097, 10, 3, True)]
+    + [(300, 10, 3, False), (4097, 10, 3, False)],
 )
-def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch, num_envs, steps, groups):
+def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
+    monkeypatch, num_envs, steps, groups, ranked
+):
     # The whole update with the kernel (interpret mode) against the jnp path that CPUs and
     # sharded states take, over a rollout with episodes ending, non-finite values, two
     # EMAs, two window sizes and a histogram: every count, ring slot and histogram bin
     # of the state equal, every reported number to float32 rounding (the batch's sums
     # are taken in another order). Batches of one block, of two, and of several chunks;
     # with `groups`, each metric also per group (indices out of range included), its
-    # group rows read by the kernel from the ungrouped batch.
+    # group rows read by the kernel from the ungrouped batch; not `ranked`: the period
+    # statistics only, which the kernel folds for group rows.
     from jaxmetrics import _stream
 
     stats = {
@@ -619,6 +640,10 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(monkeypatch, num_envs, s
         "c": ("max", jm.histogram(5, (-1.0, 1.0)), jm.window(7)),
         "d": ("min",),
     }
+    if not ranked:
+        stats = {"a": ("mean", "sum"), "b": ("std", "min"), "c": ("max",), "d": ("min",)}
+        # As rows, as on a GPU at these sizes: a CPU takes them as segments, no kernel.
+        monkeypatch.setattr(_stream.SegmentPlan, "serves", lambda self, num_envs: False)
     names = tuple(f"g{i}" for i in range(groups))
     metrics = jm.Metrics(
         terms={
