@@ -318,7 +318,7 @@ class Metrics:
             for i, where in _inputs.group_ids(self._rows, step_input, num_envs)
         ]
         segments_plan = self._rows.ep_segments
-        segmented = segments_plan is not None and segments_plan.serves(num_envs)
+        segmented = segments_plan is not None and segments_plan.serves(num_envs, shards == 1)
         rows, segments = _inputs.by_group(self._rows, values, ok, bad, group_ids, segmented)
         # Materialized once: without the barrier XLA recomputes the episode values from
         # the old accumulators inside each reduction, which makes it copy them every step.

@@ -237,18 +237,20 @@ def test_group_period_statistics_of_a_sharded_state_match_the_reference(data):
 def test_group_period_statistics_as_masked_rows_match_the_reference(data):
     # An accelerator folds the group rows of a small batch as masked rows
     # (`SegmentPlan.serves`): the same numbers as the segments.
-    with mock.patch.object(SegmentPlan, "serves", lambda plan, num_envs: False):
+    with mock.patch.object(SegmentPlan, "serves", lambda *_: False):
         _check(METRICS.init(E), *data, run=_RUN_MASKED)
 
 
-def test_segments_serve_every_batch_on_cpu_and_large_ones_elsewhere(monkeypatch):
+def test_segments_serve_every_batch_on_cpu_large_ones_elsewhere_and_none_to_our_kernel(
+    monkeypatch,
+):
     plan = METRICS._rows.ep_segments
     assert plan is not None and plan.rows > 0
 
     def scatters(serves: bool) -> int:
         g = jnp.zeros((E,), jnp.int32)
         step = {"x": jnp.zeros((len(TERMS), E), jnp.float32), "g1": g, "g2": g}
-        with mock.patch.object(SegmentPlan, "serves", lambda p, n: serves):
+        with mock.patch.object(SegmentPlan, "serves", lambda *_: serves):
             jaxpr = jax.make_jaxpr(METRICS.update)(METRICS.init(E), step, g > 0)
         return str(jaxpr).count("scatter")
 
@@ -262,6 +264,11 @@ def test_segments_serve_every_batch_on_cpu_and_large_ones_elsewhere(monkeypatch)
     monkeypatch.setattr(seg, "ACCELERATOR_MIN_GROUPS", 1)
     assert not plan.serves(-(-limit // plan.rows) - 1)
     assert plan.serves(-(-limit // plan.rows))
+    # Where our kernel folds the rows (a GPU, one shard, a float32 batch it fits), never.
+    monkeypatch.setattr(seg, "ACCELERATOR_MIN_ENTRIES", 1)
+    fits = jm._stream._kernel.MAX_BATCH
+    assert plan.serves(fits) and not plan.serves(fits, True)
+    assert plan.serves(fits + 1, True)
 
 
 def _shapes(hlo_text: str) -> list[tuple[int, ...]]:

@@ -643,7 +643,7 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     if not ranked:
         stats = {"a": ("mean", "sum"), "b": ("std", "min"), "c": ("max",), "d": ("min",)}
         # As rows, as on a GPU at these sizes: a CPU takes them as segments, no kernel.
-        monkeypatch.setattr(_stream.SegmentPlan, "serves", lambda self, num_envs: False)
+        monkeypatch.setattr(_stream.SegmentPlan, "serves", lambda *_: False)
     names = tuple(f"g{i}" for i in range(groups))
     metrics = jm.Metrics(
         terms={
