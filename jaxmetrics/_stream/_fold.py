@@ -535,29 +535,16 @@ def _hist_slot(bins: int, values, mask, lo, hi) -> jax.Array:
 
 def _hist_add_selected(g: HistGroup, h: Count, zero: jax.Array, batch: Selected, dt):
     """`_hist_add` of the histogram's rows that `batch` selects (`g.rows`), on a CUDA GPU:
-    each source row is read once per grouping it is selected by (once more for its row
-    of every entry), each entry scattered into the row of its group, where the rows as
-    arrays would be a masked copy of the source per group, each scattered whole. The
-    rows are distinct selections (a spec's rows are)."""
+    each entry of a source row scattered once per grouping into the row of its group
+    (`Selected.row_of`), where the rows as arrays would be a masked copy of the source
+    per group, each scattered whole."""
     sel = batch.take(g.rows)
     if not sel.grouped:
         return _hist_add(g, h, zero, *sel.dense()[:2], dt)
-    pairs = sorted(set(zip(sel.src, sel.kind)))
-    width = max(sel.group) + 1
-    n = sel.rows
-    # Per (source, grouping) and group: the histogram row (n: none).
-    lut = np.full((len(pairs), width), n, np.int32)
-    for r, (src, kind, group) in enumerate(zip(sel.src, sel.kind, sel.group)):
-        lut[pairs.index((src, kind)), group if kind >= 0 else 0] = r
-    src, kind = (np.array(a, np.int32) for a in zip(*pairs))
-    gid = sel.group_index(kind)
-    inside = (gid >= 0) & (gid < width)
-    at = jnp.asarray(lut)[np.arange(len(pairs))[:, None], jnp.clip(gid, 0, width - 1)]
-    row = jnp.where(inside, at, n)
+    src, row = sel.row_of()
     lo, hi = (jnp.asarray((*bound, 0.0), dt)[row] for bound in (g.lo, g.hi))
     values = jnp.take(sel.values, src, axis=0)
-    ok = jnp.take(sel.ok, src, axis=0) & (row < n)
-    inc = zero.at[row, _hist_slot(g.bins, values, ok, lo, hi)].add(1, mode="drop")
+    inc = zero.at[row, _hist_slot(g.bins, values, row < sel.rows, lo, hi)].add(1, mode="drop")
     return _count.add(h, inc), jnp.where(inc < 0, inc, 0)
 
 

@@ -517,12 +517,17 @@ def fold(
 
 def chunk_counts(batch: Selected, chunk: int) -> jax.Array:
     """Per row that `batch` selects: its masked-in entries in each chunk of `chunk`
-    entries (`[R, n]` int32, zero-padded to a power of two `n`). XLA computes each row's
-    mask from the source rows within the reduction."""
-    mask = batch.dense()[1]
-    rows, batch = mask.shape
-    n = -(-batch // chunk)
-    padded = jnp.pad(mask, ((0, 0), (0, n * chunk - batch)))
+    entries (`[R, n]` int32, zero-padded to a power of two `n`). Group rows by one scatter
+    of each source row's entries into their group's row (`Selected.row_of`): the rows'
+    masks as arrays are rows x entries, read in full for a few arrivals."""
+    rows, width = batch.rows, batch.batch
+    n = -(-width // chunk)
+    if batch.grouped:
+        at = jnp.asarray(np.arange(width, dtype=np.int32) // chunk)
+        row = batch.row_of()[1]
+        zeros = jnp.zeros((rows, pl.next_power_of_2(n)), jnp.int32)
+        return zeros.at[row, jnp.broadcast_to(at, row.shape)].add(1, mode="drop")
+    padded = jnp.pad(batch.dense()[1], ((0, 0), (0, n * chunk - width)))
     counts = jnp.sum(padded.reshape(rows, n, chunk), axis=2, dtype=jnp.int32)
     return jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
 
