@@ -46,6 +46,8 @@ ONE_PROGRAM = 1024
 COUNTED_HERE = 4096
 PROGRAMS = 128
 ALWAYS_CHUNKED = 2048
+SCATTER_COUNTS = 32
+"""Rows per (source row, grouping) from which `chunk_counts` scatters."""
 
 
 def fits(batch: int, dtype) -> bool:
@@ -517,12 +519,15 @@ def fold(
 
 def chunk_counts(batch: Selected, chunk: int) -> jax.Array:
     """Per row that `batch` selects: its masked-in entries in each chunk of `chunk`
-    entries (`[R, n]` int32, zero-padded to a power of two `n`). Group rows by one scatter
-    of each source row's entries into their group's row (`Selected.row_of`): the rows'
-    masks as arrays are rows x entries, read in full for a few arrivals."""
+    entries (`[R, n]` int32, zero-padded to a power of two `n`). XLA reduces the rows'
+    masks, computing them from the source rows within the reduction; with many group
+    rows per source row (`SCATTER_COUNTS`), one scatter of each source row's entries into
+    their group's row (`Selected.row_of`) instead: the masks are rows x entries, read in
+    full for a few arrivals, where the scatter reads each source row once per grouping
+    (slower with few groups, its updates being as many)."""
     rows, width = batch.rows, batch.batch
     n = -(-width // chunk)
-    if batch.grouped:
+    if rows >= SCATTER_COUNTS * len(set(zip(batch.src, batch.kind))):
         at = jnp.asarray(np.arange(width, dtype=np.int32) // chunk)
         row = batch.row_of()[1]
         zeros = jnp.zeros((rows, pl.next_power_of_2(n)), jnp.int32)
