@@ -56,7 +56,12 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
         cnt = jnp.maximum(filled, 1).astype(dt)
         wmean = jnp.sum(jnp.where(valid, vals, 0), axis=1) / cnt
         dev = jnp.where(valid, vals - wmean[:, None], 0)
-        wstd = jnp.sqrt(jnp.sum(dev * dev, axis=1) / cnt)
+        # The corrected two-pass: deviations from a rounded mean (a few hundredths off
+        # for float32 values near 1e6) add its error squared to the variance; their own
+        # mean is that error, which the mean gets back and the variance takes off.
+        off = jnp.sum(dev, axis=1) / cnt
+        wmean = wmean + off
+        wstd = jnp.sqrt(jnp.maximum(jnp.sum(dev * dev, axis=1) / cnt - off * off, 0))
         wmin = jnp.min(jnp.where(valid, vals, jnp.inf), axis=1)
         wmax = jnp.max(jnp.where(valid, vals, -jnp.inf), axis=1)
         has = filled > 0

@@ -283,6 +283,22 @@ def test_ema_coefficient_one_tracks_the_last_value():
     assert m.to_host(m.compute(state))["Train/v/ema"] == 7.0
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_window_mean_and_std_of_values_far_from_zero_match_float64(seed):
+    # Near 1e6 a float32 mean of the window rounds by up to a few hundredths; its square
+    # added to the variance put the std off by up to 1e-3 of itself.
+    rng = np.random.default_rng(seed)
+    metrics = jm.Metrics(
+        terms={"x": jm.Term(lambda x: x, reduce="last", stats=("mean", jm.window(64)))}
+    )
+    x = (np.float32(1e6) + rng.normal(0, 1.5, 64)).astype(np.float32)
+    state = jax.jit(metrics.update)(metrics.init(64), jnp.asarray(x), jnp.ones(64, bool))
+    host = metrics.to_host(metrics.compute(state))
+    want = x.astype(np.float64)
+    np.testing.assert_allclose(host["Episode_Metrics/x/window_mean"], want.mean(), rtol=1e-7)
+    np.testing.assert_allclose(host["Episode_Metrics/x/window_std"], want.std(), rtol=1e-5)
+
+
 def test_window_persists_across_periods():
     m = jm.Metrics(logged={"v": jm.Logged(stats=("count", jm.window(4)))})
     state = m.init(0)
