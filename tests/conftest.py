@@ -85,7 +85,26 @@ def pytest_collection_modifyitems(items):
     for item in items:
         if keys := _shared_module_fixtures(item):
             item.add_marker(pytest.mark.xdist_group(find(keys[0])))
-    # The slow tests (Brax compiles, notebooks, subprocesses) first: the two workers share
-    # them and end on short ones, instead of one worker finishing a long test alone. Work
-    # goes out a test (or group) at a time, in this order (--no-loadscope-reorder).
+    # The slow tests (Brax trainings and rollouts, notebooks, subprocesses) first: the first
+    # worker takes them from the front, the others take the short tests from the back.
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """--dist loadgroup, a test (or group) at a time in collection order
+    (--no-loadscope-reorder), the first worker from the front of the queue and the others
+    from its back: two slow tests at once run about half as fast each as beside short
+    ones, so one worker runs the slow tests while the other runs the short ones, until
+    they meet."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    class FromBothEnds(LoadGroupScheduling):
+        def _assign_work_unit(self, node):
+            if node is not self.nodes[0]:
+                self.workqueue.move_to_end(next(reversed(self.workqueue)), last=False)
+            super()._assign_work_unit(node)
+
+    return FromBothEnds(config, log)
