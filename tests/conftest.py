@@ -54,7 +54,57 @@ def brax_ppo_on_this_jax(monkeypatch):
     )
 
 
+def _shared_module_fixtures(item: pytest.Item) -> list[str]:
+    info = getattr(item, "_fixtureinfo", None)  # doctest items have none
+    if info is None:
+        return []
+    return [
+        f"{item.path.stem}.{name}"
+        for name, defs in info.name2fixturedefs.items()
+        if defs and defs[-1].scope == "module"
+    ]
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the xdist_group marks
 def pytest_collection_modifyitems(items):
-    # The slow tests (Brax compiles, notebooks, subprocesses) first: the two workers share
-    # them and end on short ones, instead of one worker finishing a long test alone.
+    # Tests that share a module-scoped fixture (a notebook run, the benchmark, a trained
+    # policy) go to one xdist worker as one group (--dist loadgroup): split over the two
+    # workers, each would build the fixture. A group is every test linked through such
+    # fixtures; every other test is scheduled on its own.
+    root: dict[str, str] = {}
+
+    def find(key: str) -> str:
+        while root.setdefault(key, key) != key:
+            key = root[key]
+        return key
+
+    for item in items:
+        keys = _shared_module_fixtures(item)
+        for key in keys[1:]:
+            root[find(key)] = find(keys[0])
+    for item in items:
+        if keys := _shared_module_fixtures(item):
+            item.add_marker(pytest.mark.xdist_group(find(keys[0])))
+    # The slow tests (Brax trainings and rollouts, notebooks, subprocesses) first: the first
+    # worker takes them from the front, the others take the short tests from the back.
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
+@pytest.hookimpl(tryfirst=True, optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """--dist loadgroup, a test (or group) at a time in collection order
+    (--no-loadscope-reorder), the first worker from the front of the queue and the others
+    from its back: two slow tests at once run about half as fast each as beside short
+    ones, so one worker runs the slow tests while the other runs the short ones, until
+    they meet."""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    class FromBothEnds(LoadGroupScheduling):
+        def _assign_work_unit(self, node):
+            if node is not self.nodes[0]:
+                self.workqueue.move_to_end(next(reversed(self.workqueue)), last=False)
+            super()._assign_work_unit(node)
+
+    return FromBothEnds(config, log)

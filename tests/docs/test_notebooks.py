@@ -168,17 +168,31 @@ def test_only_the_tensorboard_launch_is_left_out():
 # --------------------------------------------------------------------- quickstart
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("name", NAMES)
-def test_notebooks_show_no_upstream_noise(name, request):
+def assert_no_upstream_noise(executed: Executed) -> None:
     # jaxmetrics.brax, imported before Brax, keeps MuJoCo's warp lines and Brax's
     # maintenance warning out of every cell.
-    executed = request.getfixturevalue(name)
     for c in executed.nb.cells:
         if c.cell_type == "code":
             shown = stream(c) + stream(c, "stderr")
             assert "Failed to import" not in shown, c.get("id")
             assert "not actively being maintained" not in shown, c.get("id")
+
+
+# One test per notebook, each naming its fixture: the tests of a notebook share its run
+# on one xdist worker (tests/conftest.py groups them by the fixture).
+@pytest.mark.slow
+def test_custom_terms_shows_no_upstream_noise(custom_terms):
+    assert_no_upstream_noise(custom_terms)
+
+
+@pytest.mark.slow
+def test_quickstart_shows_no_upstream_noise(quickstart):
+    assert_no_upstream_noise(quickstart)
+
+
+@pytest.mark.slow
+def test_training_shows_no_upstream_noise(training):
+    assert_no_upstream_noise(training)
 
 
 @pytest.mark.slow
