@@ -65,8 +65,8 @@ class SegmentPlan:
 
         On a CPU a masked row costs a pass over the envs, so segments always win. Where our
         kernel folds the rows (a GPU, a float32 batch it fits), it reads each group row
-        from the batch and skips a chunk without arrivals: faster than the segments'
-        scatters at every size measured on an H100, 64 groups over 16,384 envs included
+        from the batch and skips a chunk without arrivals, which beat the segments'
+        scatters in every case measured, many groups over large batches included
         (docs/benchmarks.md, "Per-group statistics"). On another accelerator one masked
         reduction reads every row in one kernel, while the segment path's scatters are
         kernels of their own whose atomic adds contend when few groups share the envs:
@@ -162,9 +162,9 @@ def segment_batch(
     `bad` (int32) counts for the entry's group whether or not it is `ok`.
 
     A CPU scatters one statistic at a time (`scatter_each`: a scatter of several
-    channels runs at half the speed per statistic there); elsewhere the statistics of a
-    pass that combine alike share one scatter (`scatter_stacked`: on an H100 each scatter
-    is a kernel launch of its own, and at 4,096 envs the launches are the cost). Both give
+    channels is slower per statistic there); elsewhere the statistics of a pass that
+    combine alike share one scatter (`scatter_stacked`: on a GPU each scatter is a kernel
+    launch of its own, and the launches are the cost; docs/benchmarks.md). Both give
     the same numbers, so the form follows the default backend at trace time (a
     `platform_dependent` choice between them is refused under `vmap` over a sharded
     state: its branches' outputs come out split differently)."""
