@@ -20,9 +20,11 @@ that the GPU's multiprocessors share the batch. With an EMA or a ring, a chunk's
 needs the row's masked-in entries before and after it, from which it knows how many of
 the row's arrivals follow each of its own (its ranks, EMA weights and ring slots are the
 row's): it counts them in the row's mask itself, or one small XLA reduction first counts
-each chunk's (`chunking` says which); without either it needs no rank. The chunks'
-partial statistics are combined after the kernel, in the kernel that updates the per-row
-state.
+each chunk's (`chunking` says which); without either it needs no rank. Where that
+reduction counts the chunks of group rows (`reads_counts`), it also counts their
+non-finite flags, and a chunk that no entry reaches, most chunks of group rows at most
+steps, reads nothing but its count. The chunks' partial statistics are combined after
+the kernel, in the kernel that updates the per-row state (`combine`).
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
@@ -48,6 +50,11 @@ PROGRAMS = 128
 ALWAYS_CHUNKED = 2048
 SCATTER_COUNTS = 32
 """Rows per (source row, grouping) from which `chunk_counts` scatters."""
+COMBINED_BY_REDUCTIONS = 256
+"""Rows from which `combine` reduces over the chunks (else folds them elementwise)."""
+FLAGGED = 1 << 16
+"""What an entry of a group row with a non-finite flag adds to its chunk's count
+(`chunk_counts`; a masked-in one adds 1, and a chunk has at most 2,048 entries)."""
 
 
 def fits(batch: int, dtype) -> bool:
@@ -90,6 +97,14 @@ def chunking(rows: int, batch: int, grouped: bool = False) -> Chunking:
     if n > 1 and grouped and batch > ALWAYS_CHUNKED:
         return Chunking(ONE_PROGRAM, n, False)
     return Chunking(batch, 1, False)
+
+
+def reads_counts(rows: int, batch: int, grouped: bool, ranked: bool) -> bool:
+    """Whether the kernel reads `chunk_counts` of its `rows` rows of `batch` entries: where
+    they are chunked and not `counted_here`, for the ranks (`ranked`: with an EMA or a
+    ring) and, with group rows, to skip the chunks that nothing reaches."""
+    _, n, counted_here = chunking(rows, batch, grouped)
+    return n > 1 and not counted_here and (ranked or (grouped and batch > COUNTED_HERE))
 
 
 def blocking(batch: int) -> tuple[int, int]:
@@ -187,7 +202,8 @@ def _kernel(
         ids_ref, *refs = refs
     chunk, n_chunks, counted_here = chunking(rows, batch, grouped)
     ranked = ema or bool(rings)
-    if n_chunks > 1 and not counted_here and ranked:
+    counts_ref = None
+    if reads_counts(rows, batch, grouped, ranked):
         counts_ref, *refs = refs
     if counted:
         counted_ref, *refs = refs
@@ -260,137 +276,149 @@ def _kernel(
         ]
 
     row_sum = functools.partial(jnp.sum, axis=1, keepdims=True)
-    if n_chunks == 1:
-        loaded = [load(j) for j in range(n_blocks)]
-        later = None
-    elif not ranked:
-        # Without ranks a chunk's statistics are its own entries' only.
-        loaded = load_chunk(pl.program_id(1))
-        later = None
-    else:
-        chunk_id = pl.program_id(1)
-        loaded = load_chunk(chunk_id)
-        if not counted_here:
-            counts = counts_ref[...]
-            at = jax.lax.broadcasted_iota(jnp.int32, counts.shape, 1)
-            earlier = row_sum(jnp.where(at < chunk_id, counts, 0))
-            later = row_sum(jnp.where(at > chunk_id, counts, 0))
-        else:
-            lo = chunk_id * chunk
-            earlier, later = _masked_in_around(mask_at, batch, lo, jnp.minimum(lo + chunk, batch))
-
-    def blocks(body, init, *per_block):
-        """`body(*a block's mask, flags, counted..., *its entries of per_block, carry)`
-        folded over the chunk's blocks."""
-        for j, (marks, _) in enumerate(loaded):
-            init = body(*marks, *(b[j] for b in per_block), init)
-        return init
-
-    shift = shift_ref[...]
-
-    def counts(m, bad, *rest):
-        *counted, acc = rest
-        total, nbad, csums = acc
-        return (
-            total + row_sum(m.astype(jnp.int32)),
-            nbad + row_sum(bad),
-            tuple(s + row_sum(t) for s, t in zip(csums, counted)),
-        )
-
-    def first(m, bad, *rest):
-        *_, x, acc = rest
-        xsum, xmin, xmax, dsum = acc
-        zero = jnp.zeros_like(x)
-        return (
-            xsum + row_sum(jnp.where(m, x, zero)),
-            jnp.minimum(xmin, jnp.min(jnp.where(m, x, jnp.inf), axis=1, keepdims=True)),
-            jnp.maximum(xmax, jnp.max(jnp.where(m, x, -jnp.inf), axis=1, keepdims=True)),
-            dsum + row_sum(jnp.where(m, x - shift, zero)),
-        )
-
+    chunk_id = pl.program_id(1) if n_chunks > 1 else 0
     izero = jnp.zeros((1, 1), jnp.int32)
     fzero = jnp.zeros((1, 1), jnp.float32)
-    total, nbad, csums = blocks(counts, (izero, izero, (izero,) * packs))
-    if later is None:
-        later, row_total = izero, total
-    else:
-        row_total = earlier + total + later
-    k = jnp.maximum(total, 1).astype(jnp.float32)
-    if ema:
-        c = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
-        log_keep = jnp.log2(1 - c)
-        # The offset and seeding are worked out here from the state's own fields:
-        # computed outside, XLA put them in the per-row update's kernel, which then had
-        # to run before this one and copied seven fields to keep their old values.
-        seeded = w_ref[...] > 0
-        off = jnp.where(seeded, eoff_ref[...], shift)
-        seeding = ~seeded & (c > 0)
-    ring_at = []
-    for i, size in enumerate(rings):
-        at = Table.ring(packs, i)
-        row = table[:, at : at + 1]  # [1, 1]
-        pos_row = jnp.maximum(table[:, at + 1 : at + 2], 0)
-        pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
-        ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))
+    later = touched = None
+    if counts_ref is not None:
+        marks = counts_ref[...]
+        at = jax.lax.broadcasted_iota(jnp.int32, marks.shape, 1)
+        if grouped:
+            # A chunk that no entry of the row reaches, masked in or flagged, and no
+            # counted row reads nothing: most chunks of group rows, at most steps.
+            touched = row_sum(jnp.where(at == chunk_id, marks, 0)) > 0
+            if counted:
+                touched |= functools.reduce(jnp.logical_or, [c >= 0 for c in counted_rows])
+        if ranked:
+            arrived = marks & (FLAGGED - 1)
+            earlier = row_sum(jnp.where(at < chunk_id, arrived, 0))
+            later = row_sum(jnp.where(at > chunk_id, arrived, 0))
+    elif n_chunks > 1 and ranked:
+        lo = chunk_id * chunk
+        earlier, later = _masked_in_around(mask_at, batch, lo, jnp.minimum(lo + chunk, batch))
+    shift = shift_ref[...]
 
-    def second(on, bad, *rest):
-        *_, x, p, acc = rest
-        before, s1, s2, wsum = acc
-        m = on.astype(jnp.int32)
-        zero = jnp.zeros_like(x)
-        after = later + total - before - jnp.cumsum(m, axis=1)
-        e = jnp.where(on, x - shift - p, zero)
+    def write(xsum, xmin, xmax, p, s1, s2, wsum, total, nbad, csums):
+        k = jnp.maximum(total, 1).astype(jnp.float32)
+        floats[:, 0:1] = xsum
+        floats[:, 1:2] = xmin
+        floats[:, 2:3] = xmax
+        floats[:, 3:4] = p + s1 / k
+        floats[:, 4:5] = jnp.maximum(s2 - s1 * s1 / k, 0)
         if ema:
-            # (1-c)^after; 0^0 = 1 for c = 1, as jnp.power gives.
-            decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(jnp.float32) * log_keep))
-            weight = jnp.where(seeding & (after == row_total - 1), decay, c * decay)
-            wsum = wsum + row_sum(weight * jnp.where(on, x - off, zero))
-        # Only the last `size` arrivals go in, to consecutive slots in arrival order. The
-        # rings are aliased to their outputs: what this program does not write stays.
-        # Entries left out are also pointed past the ring (Pallas' interpret mode writes
-        # them back).
-        bits = jax.lax.bitcast_convert_type(x, jnp.uint32)
-        stamp = jnp.broadcast_to(step_ref[...], x.shape)
-        for size, out, (row, newest) in zip(rings, refs, ring_at):
-            keep = on & (after < size) & (row >= 0)
-            slot = jnp.where(keep, jax.lax.rem(newest - after, size), size)
-            rows = jnp.broadcast_to(jnp.maximum(row, 0), x.shape)
-            plt.store(out.at[rows, slot, jnp.zeros_like(slot)], bits, mask=keep)
-            plt.store(out.at[rows, slot, jnp.ones_like(slot)], stamp, mask=keep)
-        return before + row_sum(m), s1 + row_sum(e), s2 + row_sum(e * e), wsum
-
-    def passes():
-        # The moments take two passes: deviations from `shift`, then from their rounded
-        # mean `p`, corrected by the mean of the second deviations (exact for any `p`;
-        # accurate for one near the mean, as a float32 sum of values far from zero gives).
-        xs = [values() for _, values in loaded]
-        init = (fzero, fzero + jnp.inf, fzero - jnp.inf, fzero)
-        xsum, xmin, xmax, dsum = blocks(first, init, xs)
-        p = dsum / k
-        _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), xs, [p] * len(xs))
-        return xsum, xmin, xmax, p, s1, s2, wsum
+            floats[:, 5:6] = wsum
+        if n_chunks > 1:
+            # Every chunk, empty or not, writes the pivot: `combine` takes chunk 0's.
+            lead = x_ref[pl.ds(src, 1), pl.ds(0, 1)] - shift
+            pivot = jnp.where(jnp.isfinite(lead), lead, 0)
+            floats[:, 6:7] = (p - pivot) + s1 / k
+            floats[:, 7:8] = pivot
+        ints[:, 0:1] = total
+        ints[:, 1:2] = nbad
+        for j, s in enumerate(csums):
+            ints[:, 2 + j : 3 + j] = s
 
     # A chunk with no entry (most group rows of a step, and every row of a step where no
     # episode ends) reads no value: its sums are zero, its min and max +-inf, and it
     # writes no ring slot.
     empty = (fzero, fzero + jnp.inf, fzero - jnp.inf) + (fzero,) * 4
-    xsum, xmin, xmax, p, s1, s2, wsum = jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty)
-    floats[:, 0:1] = xsum
-    floats[:, 1:2] = xmin
-    floats[:, 2:3] = xmax
-    floats[:, 3:4] = p + s1 / k
-    floats[:, 4:5] = jnp.maximum(s2 - s1 * s1 / k, 0)
-    if ema:
-        floats[:, 5:6] = wsum
-    if n_chunks > 1:
-        lead = x_ref[pl.ds(src, 1), pl.ds(0, 1)] - shift
-        pivot = jnp.where(jnp.isfinite(lead), lead, 0)
-        floats[:, 6:7] = (p - pivot) + s1 / k
-        floats[:, 7:8] = pivot
-    ints[:, 0:1] = total
-    ints[:, 1:2] = nbad
-    for j, s in enumerate(csums):
-        ints[:, 2 + j : 3 + j] = s
+
+    def fold_chunk():
+        loaded = [load(j) for j in range(n_blocks)] if n_chunks == 1 else load_chunk(chunk_id)
+
+        def blocks(body, init, *per_block):
+            """`body(*a block's mask, flags, counted..., *its entries of per_block, carry)`
+            folded over the chunk's blocks."""
+            for j, (marks, _) in enumerate(loaded):
+                init = body(*marks, *(b[j] for b in per_block), init)
+            return init
+
+        def counts(m, bad, *rest):
+            *counted, acc = rest
+            total, nbad, csums = acc
+            return (
+                total + row_sum(m.astype(jnp.int32)),
+                nbad + row_sum(bad),
+                tuple(s + row_sum(t) for s, t in zip(csums, counted)),
+            )
+
+        def first(m, bad, *rest):
+            *_, x, acc = rest
+            xsum, xmin, xmax, dsum = acc
+            zero = jnp.zeros_like(x)
+            return (
+                xsum + row_sum(jnp.where(m, x, zero)),
+                jnp.minimum(xmin, jnp.min(jnp.where(m, x, jnp.inf), axis=1, keepdims=True)),
+                jnp.maximum(xmax, jnp.max(jnp.where(m, x, -jnp.inf), axis=1, keepdims=True)),
+                dsum + row_sum(jnp.where(m, x - shift, zero)),
+            )
+
+        total, nbad, csums = blocks(counts, (izero, izero, (izero,) * packs))
+        ahead = izero if later is None else later
+        row_total = total if later is None else earlier + total + later
+        k = jnp.maximum(total, 1).astype(jnp.float32)
+        if ema:
+            c = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
+            log_keep = jnp.log2(1 - c)
+            # The offset and seeding are worked out here from the state's own fields:
+            # computed outside, XLA put them in the per-row update's kernel, which then
+            # had to run before this one and copied seven fields to keep their old values.
+            seeded = w_ref[...] > 0
+            off = jnp.where(seeded, eoff_ref[...], shift)
+            seeding = ~seeded & (c > 0)
+        ring_at = []
+        for i, size in enumerate(rings):
+            at = Table.ring(packs, i)
+            row = table[:, at : at + 1]  # [1, 1]
+            pos_row = jnp.maximum(table[:, at + 1 : at + 2], 0)
+            pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
+            ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))
+
+        def second(on, bad, *rest):
+            *_, x, p, acc = rest
+            before, s1, s2, wsum = acc
+            m = on.astype(jnp.int32)
+            zero = jnp.zeros_like(x)
+            after = ahead + total - before - jnp.cumsum(m, axis=1)
+            e = jnp.where(on, x - shift - p, zero)
+            if ema:
+                # (1-c)^after; 0^0 = 1 for c = 1, as jnp.power gives.
+                decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(jnp.float32) * log_keep))
+                weight = jnp.where(seeding & (after == row_total - 1), decay, c * decay)
+                wsum = wsum + row_sum(weight * jnp.where(on, x - off, zero))
+            # Only the last `size` arrivals go in, to consecutive slots in arrival order.
+            # The rings are aliased to their outputs: what this program does not write
+            # stays. Entries left out are also pointed past the ring (Pallas' interpret
+            # mode writes them back).
+            bits = jax.lax.bitcast_convert_type(x, jnp.uint32)
+            stamp = jnp.broadcast_to(step_ref[...], x.shape)
+            for size, out, (row, newest) in zip(rings, refs, ring_at):
+                keep = on & (after < size) & (row >= 0)
+                slot = jnp.where(keep, jax.lax.rem(newest - after, size), size)
+                rows = jnp.broadcast_to(jnp.maximum(row, 0), x.shape)
+                plt.store(out.at[rows, slot, jnp.zeros_like(slot)], bits, mask=keep)
+                plt.store(out.at[rows, slot, jnp.ones_like(slot)], stamp, mask=keep)
+            return before + row_sum(m), s1 + row_sum(e), s2 + row_sum(e * e), wsum
+
+        def passes():
+            # The moments take two passes: deviations from `shift`, then from their
+            # rounded mean `p`, corrected by the mean of the second deviations (exact for
+            # any `p`; accurate for one near the mean, as a float32 sum of values far from
+            # zero gives).
+            xs = [values() for _, values in loaded]
+            init = (fzero, fzero + jnp.inf, fzero - jnp.inf, fzero)
+            xsum, xmin, xmax, dsum = blocks(first, init, xs)
+            p = dsum / k
+            _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), xs, [p] * len(xs))
+            return xsum, xmin, xmax, p, s1, s2, wsum
+
+        write(*jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty), total, nbad, csums)
+
+    if touched is None:
+        fold_chunk()
+    else:
+        untouched = functools.partial(write, *empty, izero, izero, (izero,) * packs)
+        jax.lax.cond(jnp.sum(touched) > 0, fold_chunk, untouched)
 
 
 class Batch(NamedTuple):
@@ -464,7 +492,7 @@ def fold(
     ]
     if batch.grouped:
         args.append((batch.ids, whole(batch.ids)))
-    if n_chunks > 1 and not counted_here and (ema is not None or rings):
+    if reads_counts(rows, width, batch.grouped, ema is not None or bool(rings)):
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
     if packs and counted.shape[0]:
         # Padded to whole multiples of the source rows: shaped like the batch, XLA writes
@@ -519,20 +547,32 @@ def fold(
 
 def chunk_counts(batch: Selected, chunk: int) -> jax.Array:
     """Per row that `batch` selects: its masked-in entries in each chunk of `chunk`
-    entries (`[R, n]` int32, zero-padded to a power of two `n`). XLA reduces the rows'
-    masks, computing them from the source rows within the reduction; with many group
-    rows per source row (`SCATTER_COUNTS`), one scatter of each source row's entries into
-    their group's row (`Selected.row_of`) instead: the masks are rows x entries, read in
-    full for a few arrivals, where the scatter reads each source row once per grouping
-    (slower with few groups, its updates being as many)."""
+    entries (`[R, n]` int32, zero-padded to a power of two `n`), plus, with group rows,
+    `FLAGGED` times those with a non-finite flag (a chunk that neither reaches is
+    skipped). XLA reduces the rows' masks, computing them from the source rows within the
+    reduction; with many group rows per source row (`SCATTER_COUNTS`), one scatter of
+    each source row's entries into their group's row (`Selected.row_of`) instead: the
+    masks are rows x entries, read in full for a few arrivals, where the scatter reads
+    each source row once per grouping (slower with few groups, its updates being as
+    many)."""
     rows, width = batch.rows, batch.batch
     n = -(-width // chunk)
+
+    def marks(ok, bad):
+        if not batch.grouped:
+            return ok.astype(jnp.int32)
+        return ok.astype(jnp.int32) + jnp.where(bad != 0, FLAGGED, 0)
+
     if rows >= SCATTER_COUNTS * len(set(zip(batch.src, batch.kind))):
         at = jnp.asarray(np.arange(width, dtype=np.int32) // chunk)
-        row = batch.row_of()[1]
+        src, row = batch.row_of(masked=False)
+        add = marks(*(jnp.take(a, src, axis=0) for a in (batch.ok, batch.bad)))
+        # Entries that reach no row are dropped before the scatter: adding their zeros
+        # would be an update each, contending on the few rows.
+        row = jnp.where(add > 0, row, rows)
         zeros = jnp.zeros((rows, pl.next_power_of_2(n)), jnp.int32)
-        return zeros.at[row, jnp.broadcast_to(at, row.shape)].add(1, mode="drop")
-    padded = jnp.pad(batch.dense()[1], ((0, 0), (0, n * chunk - width)))
+        return zeros.at[row, jnp.broadcast_to(at, row.shape)].add(add, mode="drop")
+    padded = jnp.pad(marks(*batch.dense()[1:]), ((0, 0), (0, n * chunk - width)))
     counts = jnp.sum(padded.reshape(rows, n, chunk), axis=2, dtype=jnp.int32)
     return jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
 
@@ -545,13 +585,17 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
 
     Written as elementwise folds over the n chunks, not as reductions: XLA then computes
     them in the kernel that updates the per-row state, where reductions over the chunk
-    axis were kernels of their own (two more per step)."""
+    axis were kernels of their own (two more per step). From `COMBINED_BY_REDUCTIONS`
+    rows on (group rows) as reductions: that kernel's fold over 16 chunks of hundreds of
+    rows took longer than the two reductions (docs/benchmarks.md)."""
+    by_reductions = floats.shape[0] >= COMBINED_BY_REDUCTIONS
 
-    def over_chunks(op, a):
+    def over_chunks(op, reduce, a):
+        if by_reductions:
+            return reduce(a, axis=1)
         return functools.reduce(op, [a[:, j] for j in range(a.shape[1])])
 
-    def total(a):
-        return over_chunks(jnp.add, a)
+    total = functools.partial(over_chunks, jnp.add, jnp.sum)
 
     k = ints[..., 0].astype(jnp.float32)
     dev, pivot = floats[..., 6], floats[:, 0, 7]
@@ -559,8 +603,8 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
     mean = s1 / jnp.maximum(n, 1)
     row_floats = [
         total(floats[..., 0]),
-        over_chunks(jnp.minimum, floats[..., 1]),
-        over_chunks(jnp.maximum, floats[..., 2]),
+        over_chunks(jnp.minimum, jnp.min, floats[..., 1]),
+        over_chunks(jnp.maximum, jnp.max, floats[..., 2]),
         # An empty row's mean deviation is 0, as a row of one chunk gives (the pivot is
         # a value of the source row, here of no entry of the row).
         jnp.where(n > 0, pivot + mean, 0),

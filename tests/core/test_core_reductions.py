@@ -471,6 +471,21 @@ def test_fused_kernel_folds_group_rows_without_ranks(rows, batch, groups, seed):
 
 
 @pytest.mark.parametrize(
+    ("rows", "batch", "groups", "ranked", "seed"),
+    # Chunks counted by XLA: 64 groups over 2,100 and 4,097 entries; with ranks (EMA,
+    # ring) and without; 4 x 65 rows, whose chunks `combine` reduces over.
+    [(1, 2100, 64, True, 0), (1, 2100, 64, False, 3), (2, 4097, 64, True, 5)]
+    + [(4, 2100, 64, True, 1)],
+)
+def test_fused_kernel_skips_only_chunks_that_nothing_reaches(rows, batch, groups, ranked, seed):
+    # A chunk of a group row that no masked-in entry, no non-finite flag and no counted
+    # row reaches reads nothing. With flags on 0.5% of the entries, chunks that a flag
+    # alone reaches must still count it, and the empty chunks' partial statistics must
+    # still combine into their rows' (against the float64 loop).
+    check_fused_kernel(rows, batch, 5, seed, groups, ranked=ranked, flags=0.005)
+
+
+@pytest.mark.parametrize(
     ("rows", "batch", "size", "seed", "chunks"),
     [
         (1, 4096, 16, 0, 4),
@@ -501,9 +516,10 @@ def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chu
     check_fused_kernel(rows, batch, size, seed, pieces=1024)
 
 
-def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None, ranked=True):
+def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None, ranked=True, flags=None):
     """The kernel against a loop over each row (see the tests above); without an EMA and
-    a ring where not `ranked` (its chunks then need no rank). With `groups`, the
+    a ring where not `ranked` (its chunks then need no rank). `flags`: the density of
+    non-finite flags (else half). With `groups`, the
     batch's rows are each of `rows` source rows over every entry and then masked to each
     of `groups` groups (`Selected`), the group index drawn uniformly (out of range on
     either side included), all in one group, or in a few groups (the others empty); the
@@ -522,7 +538,10 @@ def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None, ranked=Tr
         ok = rng.random((sources, batch)) < np.repeat(runs, pieces, axis=1)[:, :batch]
     level = rng.choice([1e4, 1e6])
     x = (level + rng.normal(size=(sources, batch))).astype(np.float32)
-    flags = rng.integers(0, 2, (sources, batch), dtype=np.int32)
+    flags_in = rng.integers(0, 2, (sources, batch), dtype=np.int32)
+    if flags is not None:
+        thin = np.random.default_rng([seed, 1]).random((sources, batch))
+        flags_in = (thin < flags).astype(np.int32)
     src, kind, group = np.arange(sources), np.full(sources, -1), np.zeros(sources, int)
     ids = np.zeros((0, batch), np.int32)
     if groups:
@@ -541,7 +560,7 @@ def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None, ranked=Tr
     match = np.ones((rows, batch), bool)
     if groups:
         match = (kind[:, None] < 0) | (ids[np.maximum(kind, 0)] == group[:, None])
-    mask, values, nonfinite = ok[src] & match, x[src], flags[src] * match
+    mask, values, nonfinite = ok[src] & match, x[src], flags_in[src] * match
     packs = int(rng.integers(0, 3))
     counted = rng.integers(0, 3, (rng.integers(max(0, rows * packs - 1), rows * packs + 1), batch))
     counted = counted.astype(np.int32)
@@ -565,7 +584,7 @@ def check_fused_kernel(rows, batch, size, seed, groups=0, pieces=None, ranked=Tr
         selected = _stream.Selected(v, m, bad, i, *table)
         return _kernel.fold(selected, sh, t, ta, packs, ema, rings, interpret=True)
 
-    args = (ok, x, flags, ids, steps, counted, ema_w, ema_off, shift, data, pos)
+    args = (ok, x, flags_in, ids, steps, counted, ema_w, ema_off, shift, data, pos)
     stats, rings = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
     want_counted = np.zeros(rows * packs, np.int64)
     want_counted[: counted.shape[0]] = counted.sum(axis=1)
