@@ -177,8 +177,9 @@ def _kernel(
 ):
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
     sizes, `packs` the counted rows per batch row (`counted`: read from a counted input;
-    else none has any). `table` holds the row's static ints (`Table`); `counts` (chunks
-    not `counted_here`) the row's masked-in entries per chunk.
+    else none has any). `table` holds the row's static ints (`Table`); `counts`
+    (`reads_counts`) the row's masked-in entries per chunk, with group rows plus
+    `FLAGGED` times its flagged ones.
 
     The row is read from its source row of the batch (`Selected`), with its mask built
     as it is read: the source's mask and, for a group row (`grouped`), its group index
@@ -191,7 +192,8 @@ def _kernel(
     masked-in entries then reads its values and makes two passes over them: the first
     sums what needs no arrival rank, the second takes the ranks, the moments around the
     first pass's mean, the EMA's weighted sum and the ring writes. A chunk without any
-    (at most steps, most chunks of group rows) skips both. A chunk's ranks add the row's
+    (at most steps, most chunks of group rows) skips both; with group rows, one that its
+    count shows nothing reaches reads nothing at all. A chunk's ranks add the row's
     masked-in entries in later chunks (counted in the row's mask by `_masked_in_around`,
     or from `counts`), and its EMA weights and ring slots follow from those global ranks
     and the row's count. Its mean deviation is also written off a pivot that every chunk
