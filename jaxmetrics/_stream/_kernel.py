@@ -202,7 +202,7 @@ def _kernel(
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
-    chunk, n_chunks, counted_here = chunking(rows, batch, grouped)
+    chunk, n_chunks, _ = chunking(rows, batch, grouped)
     ranked = ema or bool(rings)
     counts_ref = None
     if reads_counts(rows, batch, grouped, ranked):
@@ -464,7 +464,7 @@ def fold(
     slowly (Pallas' interpret mode).
     """
     rows, width = batch.rows, batch.batch
-    chunk, n_chunks, counted_here = chunking(rows, width, batch.grouped)
+    chunk, n_chunks, _ = chunking(rows, width, batch.grouped)
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
     at = np.arange(rows, dtype=np.int32)[:, None] + rows * np.arange(packs, dtype=np.int32)
     table = [coeff.view(np.int32)[:, None], batch.table(), np.where(at < counted.shape[0], at, -1)]
