@@ -15,16 +15,9 @@ then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times
 A group row (`_stream.Selected`) is read from its metric's row of the batch and the group
 index, its mask built as it is loaded; the batch is not copied per group.
 
-A row longer than `ONE_PROGRAM` is folded by one program per chunk of it (`chunking`), so
-that the GPU's multiprocessors share the batch. With an EMA or a ring, a chunk's program
-needs the row's masked-in entries before and after it, from which it knows how many of
-the row's arrivals follow each of its own (its ranks, EMA weights and ring slots are the
-row's): it counts them in the row's mask itself, or one small XLA reduction first counts
-each chunk's (`chunking` says which); without either it needs no rank. Where that
-reduction counts the chunks of group rows (`reads_counts`), it also counts their
-non-finite flags, and a chunk that no entry reaches, most chunks of group rows at most
-steps, reads nothing but its count. The chunks' partial statistics are combined after
-the kernel, in the kernel that updates the per-row state (`combine`).
+A row longer than `_chunks.ONE_PROGRAM` entries is folded by one program per chunk of it
+(`_chunks`: how rows are chunked, the chunks' counts that XLA takes before the kernel,
+and their partial statistics combined after it).
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
@@ -40,21 +33,11 @@ import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
+from ._chunks import FLAGGED, chunk_counts, chunking, combine, reads_counts
 from ._selected import Selected
 
 MIN_BATCH = 32
 MAX_BATCH = 65536
-ONE_PROGRAM = 1024
-COUNTED_HERE = 4096
-PROGRAMS = 128
-ALWAYS_CHUNKED = 2048
-SCATTER_COUNTS = 32
-"""Rows per (source row, grouping) from which `chunk_counts` scatters."""
-COMBINED_BY_REDUCTIONS = 256
-"""Rows from which `combine` reduces over the chunks (else folds them elementwise)."""
-FLAGGED = 1 << 16
-"""What an entry of a group row with a non-finite flag adds to its chunk's count
-(`chunk_counts`; a masked-in one adds 1, and a chunk has at most 2,048 entries)."""
 
 
 def fits(batch: int, dtype) -> bool:
@@ -62,49 +45,6 @@ def fits(batch: int, dtype) -> bool:
     from `MIN_BATCH` to `MAX_BATCH`, the largest measured faster than XLA's kernels
     (docs/benchmarks.md)."""
     return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
-
-
-class Chunking(NamedTuple):
-    """How a row is folded (`chunking`): by `n` programs of `size` entries each (one
-    program: the whole row), the chunks' masked-in entries counted by each program in the
-    row's mask itself (`counted_here`) or by an XLA reduction first (`chunk_counts`)."""
-
-    size: int
-    n: int
-    counted_here: bool
-
-
-def chunking(rows: int, batch: int, grouped: bool = False) -> Chunking:
-    """How each of `rows` rows of `batch` entries is folded; `grouped`: the rows include
-    group rows. A row past `COUNTED_HERE` entries in chunks of 1,024 entries (2,048 past
-    16,384) whose partial statistics `fold` combines, counted by XLA: one program per long
-    row leaves most of the GPU idle, and smaller chunks make more programs and partial
-    statistics than the GPU gains from. A shorter one past `ONE_PROGRAM` in chunks of
-    1,024 where that makes at most `PROGRAMS` programs, each counting the row's mask
-    itself: a program's time is mostly latency that grows with its entries, so ten rows
-    of 4,096 run faster as forty programs. Group rows past `ALWAYS_CHUNKED` entries are
-    chunked at any number of rows, counted by XLA: a chunk without any masked-in entry
-    (most chunks of group rows) costs little, where every program reading its whole row's
-    mask costs more than the XLA reduction. Else one program per row: four hundred
-    programs of ungrouped rows run no faster than a hundred (docs/benchmarks.md,
-    "Scaling" and "Per-group statistics")."""
-    if batch > COUNTED_HERE:
-        size = 1024 if batch <= 16384 else 2048
-        return Chunking(size, -(-batch // size), False)
-    n = -(-batch // ONE_PROGRAM)
-    if n > 1 and rows * n <= PROGRAMS:
-        return Chunking(ONE_PROGRAM, n, True)
-    if n > 1 and grouped and batch > ALWAYS_CHUNKED:
-        return Chunking(ONE_PROGRAM, n, False)
-    return Chunking(batch, 1, False)
-
-
-def reads_counts(rows: int, batch: int, grouped: bool, ranked: bool) -> bool:
-    """Whether the kernel reads `chunk_counts` of its `rows` rows of `batch` entries: where
-    they are chunked and not `counted_here`, for the ranks (`ranked`: with an EMA or a
-    ring) and, with group rows, to skip the chunks that nothing reaches."""
-    _, n, counted_here = chunking(rows, batch, grouped)
-    return n > 1 and not counted_here and (ranked or (grouped and batch > COUNTED_HERE))
 
 
 def blocking(batch: int) -> tuple[int, int]:
@@ -149,10 +89,10 @@ class EmaIn(NamedTuple):
 
 
 def _masked_in_around(mask_at, batch: int, lo, hi) -> tuple[jax.Array, jax.Array]:
-    """The masked-in entries of a row of `batch` entries (`Chunking.counted_here`) before
-    entry `lo` and from entry `hi` on (`[1, 1]` int32 each), read in `blocking`'s blocks
-    by `mask_at(start, n, fresh)` (the row's mask at `n` entries from `start`, those not
-    `fresh` masked out; None: all are fresh)."""
+    """The masked-in entries of a row of `batch` entries (`_chunks.Chunking.counted_here`)
+    before entry `lo` and from entry `hi` on (`[1, 1]` int32 each), read in `blocking`'s
+    blocks by `mask_at(start, n, fresh)` (the row's mask at `n` entries from `start`, those
+    not `fresh` masked out; None: all are fresh)."""
     block, n_blocks = blocking(batch)
     earlier = later = jnp.zeros((1, 1), jnp.int32)
     for j in range(n_blocks):
@@ -548,74 +488,3 @@ def fold(
         ints[:, 2 : 2 + packs].T.reshape(-1),
     )
     return stats, tuple(data)
-
-
-def chunk_counts(batch: Selected, chunk: int) -> jax.Array:
-    """Per row that `batch` selects: its masked-in entries in each chunk of `chunk`
-    entries (`[R, n]` int32, zero-padded to a power of two `n`), plus, with group rows,
-    `FLAGGED` times those with a non-finite flag (a chunk that neither reaches is
-    skipped). XLA reduces the rows' masks, computing them from the source rows within the
-    reduction; with many group rows per source row (`SCATTER_COUNTS`), one scatter of
-    each source row's entries into their group's row (`Selected.row_of`) instead: the
-    masks are rows x entries, read in full for a few arrivals, where the scatter reads
-    each source row once per grouping (slower with few groups, its updates being as
-    many)."""
-    rows, width = batch.rows, batch.batch
-    n = -(-width // chunk)
-
-    def marks(ok, bad):
-        if not batch.grouped:
-            return ok.astype(jnp.int32)
-        return ok.astype(jnp.int32) + jnp.where(bad != 0, FLAGGED, 0)
-
-    if rows >= SCATTER_COUNTS * len(set(zip(batch.src, batch.kind))):
-        at = jnp.asarray(np.arange(width, dtype=np.int32) // chunk)
-        src, row = batch.row_of(masked=False)
-        add = marks(*(jnp.take(a, src, axis=0) for a in (batch.ok, batch.bad)))
-        # Entries that reach no row are dropped before the scatter: adding their zeros
-        # would be an update each, contending on the few rows.
-        row = jnp.where(add > 0, row, rows)
-        zeros = jnp.zeros((rows, pl.next_power_of_2(n)), jnp.int32)
-        return zeros.at[row, jnp.broadcast_to(at, row.shape)].add(add, mode="drop")
-    padded = jnp.pad(marks(*batch.dense()[1:]), ((0, 0), (0, n * chunk - width)))
-    counts = jnp.sum(padded.reshape(rows, n, chunk), axis=2, dtype=jnp.int32)
-    return jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
-
-
-def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """A row's `floats` and `ints` from its chunks' (`[R, n, 8]`, `[R, n, I]`): sums,
-    min, max, and the moments by Chan's rule for n parts. The chunks' mean deviations
-    (slot 6) are taken off a pivot every chunk of the row shares (slot 7), near them:
-    the sum of their squares does not cancel, and one pass takes it.
-
-    Written as elementwise folds over the n chunks, not as reductions: XLA then computes
-    them in the kernel that updates the per-row state, where reductions over the chunk
-    axis were kernels of their own (two more per step). From `COMBINED_BY_REDUCTIONS`
-    rows on (group rows) as reductions: that kernel's fold over 16 chunks of hundreds of
-    rows took longer than the two reductions (docs/benchmarks.md)."""
-    by_reductions = floats.shape[0] >= COMBINED_BY_REDUCTIONS
-
-    def over_chunks(op, reduce, a):
-        if by_reductions:
-            return reduce(a, axis=1)
-        return functools.reduce(op, [a[:, j] for j in range(a.shape[1])])
-
-    total = functools.partial(over_chunks, jnp.add, jnp.sum)
-
-    k = ints[..., 0].astype(jnp.float32)
-    dev, pivot = floats[..., 6], floats[:, 0, 7]
-    s1, s2, n = total(k * dev), total(k * dev * dev), total(k)
-    mean = s1 / jnp.maximum(n, 1)
-    row_floats = [
-        total(floats[..., 0]),
-        over_chunks(jnp.minimum, jnp.min, floats[..., 1]),
-        over_chunks(jnp.maximum, jnp.max, floats[..., 2]),
-        # An empty row's mean deviation is 0, as a row of one chunk gives (the pivot is
-        # a value of the source row, here of no entry of the row).
-        jnp.where(n > 0, pivot + mean, 0),
-        total(floats[..., 4]) + jnp.maximum(s2 - s1 * mean, 0),
-        total(floats[..., 5]),
-    ]
-    # The ints summed as one [R, I] array: stacked from [R] columns, the counted sums of
-    # several packs (one row) were a concatenation that XLA wrote in a kernel of its own.
-    return jnp.stack(row_floats, axis=1), total(ints)

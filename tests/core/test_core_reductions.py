@@ -405,9 +405,9 @@ def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     # A batch of one program that is not a power of two is read in two blocks, the second
     # overlapping the first (in all but one entry at 513): the arrival ranks, the moments
     # and the ring writes across blocks, against the same loop.
-    from jaxmetrics._stream import _kernel
+    from jaxmetrics._stream import _chunks, _kernel
 
-    assert _kernel.chunking(rows, batch) == (batch, 1, False)
+    assert _chunks.chunking(rows, batch) == (batch, 1, False)
     assert _kernel.blocking(batch)[1] == 2
     check_fused_kernel(rows, batch, size, seed)
 
@@ -432,9 +432,9 @@ def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
     # several, the last chunk of a row that chunks do not divide overlaps the one before
     # (3,000: in 72 entries; 4,097: in all but one), and the chunks' moments are combined;
     # against the same loop.
-    from jaxmetrics._stream import _kernel
+    from jaxmetrics._stream import _chunks
 
-    assert _kernel.chunking(rows, batch)[1] > 1
+    assert _chunks.chunking(rows, batch)[1] > 1
     check_fused_kernel(rows, batch, size, seed)
 
 
@@ -514,9 +514,9 @@ def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chu
     # chunks' counts. Masks drawn per 1,024 entries as empty, full or
     # in between, so that whole chunks are empty or full; rings smaller than a chunk, and
     # larger than several.
-    from jaxmetrics._stream import _kernel
+    from jaxmetrics._stream import _chunks
 
-    assert _kernel.chunking(rows, batch)[1:] == (chunks, chunks > 1 and batch <= 4096)
+    assert _chunks.chunking(rows, batch)[1:] == (chunks, chunks > 1 and batch <= 4096)
     check_fused_kernel(rows, batch, size, seed, pieces=1024)
 
 
