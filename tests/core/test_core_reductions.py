@@ -490,6 +490,54 @@ def test_fused_kernel_skips_only_chunks_that_nothing_reaches(rows, batch, groups
 
 
 @pytest.mark.parametrize(
+    ("batch", "groups", "size", "seed", "flags", "ranked"),
+    # Seeds drawn for masks 2% full with flags on 0.5% of the entries (a list of one
+    # block: 32 entries at 300, 64 at 2,100, 128 at 4,097), flags alone (an empty mask),
+    # and masks half full or full with flags on half the entries (lists of several
+    # blocks, in chunks of 256 and 1,024 entries, the last one overlapping the one
+    # before); group indices uniform, or in a few groups.
+    [(300, 8, 5, 8, 0.005, True), (2100, 64, 5, 3, 0.005, True), (4097, 64, 700, 0, 0.005, True)]
+    + [(2100, 64, 5, 9, 0.005, True), (4097, 64, 3, 0, 0.005, False)]
+    + [(300, 3, 5, 1, None, True), (2100, 3, 16, 4, None, True), (4097, 2, 3000, 2, None, True)],
+)
+def test_fused_kernel_reads_group_rows_from_the_lists_of_reached_entries(
+    batch, groups, size, seed, flags, ranked
+):
+    # Each group row read from its source row's list of reached entries (`_reached`): a
+    # list of one block, loaded once for every pass, and lists of several, read in a loop;
+    # the counted rows summed over every entry, reached or not; against the float64 loop.
+    check_fused_kernel(1, batch, size, seed, groups, ranked=ranked, flags=flags, listed=True)
+
+
+@pytest.mark.parametrize(
+    ("sources", "batch", "density"),
+    [(3, 300, 0.02), (2, 3000, 0.5), (1, 4097, 1.0), (2, 65, 0.0), (1, 2048, 0.02)],
+)
+def test_reached_entries_are_listed_in_order_and_counted_rows_summed(sources, batch, density):
+    # The lists hold each source row's masked-in or flagged entries, in entry order,
+    # across chunks (the last one at 300, 3,000 and 4,097 overlapping the one before),
+    # and the listing's kernel sums every counted row whole: against numpy.
+    from jaxmetrics import _stream
+    from jaxmetrics._stream import _reached
+
+    rng = np.random.default_rng(batch)
+    ok = rng.random((sources, batch)) < density
+    bad = (rng.random((sources, batch)) < 0.01).astype(np.int32)
+    counted = rng.integers(0, 3, (5, batch)).astype(np.int32)
+
+    def lists(ok, bad, counted):
+        batch = _stream.Selected.every(jnp.zeros(ok.shape, jnp.float32), ok, bad)
+        return _reached.reached(batch, counted, interpret=True)
+
+    (listed, counts), sums = jax.jit(lists)(ok, bad, counted)
+    for r in range(sources):
+        want = np.flatnonzero(ok[r] | (bad[r] != 0))
+        assert int(np.sum(counts[r])) == len(want)
+        np.testing.assert_array_equal(np.asarray(listed[r, : len(want)]), want)
+    np.testing.assert_array_equal(sums, counted.sum(axis=1))
+
+
+@pytest.mark.parametrize(
     ("rows", "batch", "size", "seed", "chunks"),
     [
         (1, 4096, 16, 0, 4),
@@ -521,7 +569,16 @@ def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chu
 
 
 def check_fused_kernel(
-    rows, batch, size, seed, groups=0, pieces=None, ranked=True, flags=None, counted_rows=None
+    rows,
+    batch,
+    size,
+    seed,
+    groups=0,
+    pieces=None,
+    ranked=True,
+    flags=None,
+    counted_rows=None,
+    listed=False,
 ):
     """The kernel against a loop over each row (see the tests above); without an EMA and
     a ring where not `ranked` (its chunks then need no rank). `flags`: the density of
@@ -531,7 +588,8 @@ def check_fused_kernel(
     of `groups` groups (`Selected`), the group index drawn uniformly (out of range on
     either side included), all in one group, or in a few groups (the others empty); the
     loop reads the rows masked in numpy. `pieces`: the mask's density drawn per run of
-    that many entries of a row (else one density for the whole batch)."""
+    that many entries of a row (else one density for the whole batch). `listed`: group
+    rows read from the lists of reached entries (`_reached`), else from the batch."""
     from jaxmetrics import _stream
     from jaxmetrics._stream import _kernel
 
@@ -589,7 +647,7 @@ def check_fused_kernel(
         rings = (_kernel.RingIn(d, p, ring_row, np.arange(rows)),) if ranked else ()
         table = (tuple(int(a) for a in b) for b in (src, kind, group))
         selected = _stream.Selected(v, m, bad, i, *table)
-        return _kernel.fold(selected, sh, t, ta, packs, ema, rings, interpret=True)
+        return _kernel.fold(selected, sh, t, ta, packs, ema, rings, True, listed)
 
     args = (ok, x, flags_in, ids, steps, counted, ema_w, ema_off, shift, data, pos)
     stats, rings = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
@@ -658,13 +716,14 @@ def test_fused_kernel_serves_float32_batches_of_32_to_65536(monkeypatch, num_env
 
 
 @pytest.mark.parametrize(
-    ("num_envs", "steps", "groups", "ranked"),
-    [(64, 30, 0, True), (300, 10, 0, True), (3000, 10, 0, True), (4097, 10, 0, True)]
-    + [(12288, 10, 0, True), (300, 10, 3, True), (4097, 10, 3, True)]
-    + [(300, 10, 3, False), (4097, 10, 3, False)],
+    ("num_envs", "steps", "groups", "ranked", "listed"),
+    [(64, 30, 0, True, False), (300, 10, 0, True, False), (3000, 10, 0, True, False)]
+    + [(4097, 10, 0, True, False), (12288, 10, 0, True, False), (300, 10, 3, True, False)]
+    + [(4097, 10, 3, True, False), (300, 10, 3, False, False), (4097, 10, 3, False, False)]
+    + [(300, 10, 3, True, True)],
 )
 def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
-    monkeypatch, num_envs, steps, groups, ranked
+    monkeypatch, num_envs, steps, groups, ranked, listed
 ):
     # The whole update with the kernel (interpret mode) against the jnp path that CPUs and
     # sharded states take, over a rollout with episodes ending, non-finite values, two
@@ -673,8 +732,13 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     # are taken in another order). Batches of one block, of two, and of several chunks;
     # with `groups`, each metric also per group (indices out of range included), its
     # group rows read by the kernel from the ungrouped batch; not `ranked`: the period
-    # statistics only, which the kernel folds for group rows.
+    # statistics only, which the kernel folds for group rows; `listed`: the group rows
+    # read from the lists of reached entries (`_reached`; else from the batch, as
+    # under `_reached.ROWS` group rows).
     from jaxmetrics import _stream
+    from jaxmetrics._stream import _reached
+
+    monkeypatch.setattr(_reached, "ROWS", 1 if listed else 10**9)
 
     stats = {
         "a": ("mean", jm.ema(0.05), jm.window(7)),

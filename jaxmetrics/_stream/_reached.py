@@ -1,0 +1,134 @@
+"""The entries of a batch's source rows that group rows can reach, listed in order.
+
+A group row is its source row masked to one group: of the batch's entries it is reached
+only by those that are masked in or carry a non-finite flag, a few per step where
+episodes end (1% of them at an episode of 100 steps). Folded from the batch, each of
+`groups x sources` rows reads every entry to find its few: work in rows x entries, where
+the entries that reach any are sources x arrivals. Listed first, per source row, in
+entry order (one cumulative count per chunk of the row, and a store of each reached
+entry's index at its rank), each group row is then read from its source row's list
+(`_kernel`, `gather`): as many entries as the list has, in the order of the batch, so
+that ranks, EMA weights and ring slots come out as from the batch itself. A step where
+every entry arrives lists them all, and the group rows then read the whole batch.
+"""
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plt
+
+from ._selected import Selected
+
+CHUNK = 1024
+"""Entries per program of the listing."""
+ROWS = 64
+"""Group rows from which a batch's group rows are read from the lists (fewer read the
+batch: the listing's two kernels cost more than they save)."""
+
+
+class Reached(NamedTuple):
+    """Per source row of a batch (`[S, W]` int32, W the batch rounded up to whole
+    chunks): the indices of its reached entries in order, then entries of no meaning; and
+    its reached entries per chunk (`[S, n]` int32, zero-padded), whose sum is the list's
+    length."""
+
+    listed: jax.Array
+    counts: jax.Array
+
+
+def listed(rows: int, grouped: bool) -> bool:
+    """Whether `rows` group rows of a batch (`grouped`: of a batch with group rows) are
+    read from the lists."""
+    return grouped and rows >= ROWS
+
+
+def block(batch: int) -> int:
+    """The entries a group row reads from its list at a time: about one in 64 of the
+    batch's, so that a step's arrivals (an episode's last step, at 1 in 100 or fewer of
+    them) take one block; at most a chunk, at least 32."""
+    return min(chunk(batch), max(32, pl.next_power_of_2(-(-batch // 64))))
+
+
+def chunk(batch: int) -> int:
+    """Entries per program of the listing (and per block of a group row's long list)."""
+    return min(CHUNK, 1 << (batch.bit_length() - 1))
+
+
+def _list_kernel(ok_ref, bad_ref, counts_ref, *refs, batch: int, chunk: int, counted: int):
+    """One chunk of a source row: each reached entry's index stored at its rank in the
+    row (the entries reached in earlier chunks, from `counts`, plus those before it in the
+    chunk). Programs past the source rows sum a chunk of a counted row instead. The last
+    chunk of a row that chunks do not divide ends at the row's end, its entries of the
+    chunk before masked out."""
+    if counted:
+        counted_ref, listed_ref, sums_ref = refs
+    else:
+        (listed_ref,) = refs
+    row, c = pl.program_id(0), pl.program_id(1)
+    sources = ok_ref.shape[0]
+    lo = c * chunk
+    start = lo if batch % chunk == 0 else jnp.minimum(lo, batch - chunk)
+    at = jax.lax.broadcasted_iota(jnp.int32, (1, chunk), 1) + start
+
+    def listing():
+        cols = (pl.ds(row, 1), pl.ds(start, chunk))
+        reached = (ok_ref[cols] | (bad_ref[cols] != 0)) & (at >= lo)
+        counts = counts_ref[pl.ds(row, 1), :]
+        chunks = jax.lax.broadcasted_iota(jnp.int32, counts.shape, 1)
+        earlier = jnp.sum(jnp.where(chunks < c, counts, 0))
+        rank = earlier + jnp.cumsum(reached.astype(jnp.int32), axis=1) - 1
+        # Entries left out are pointed past the list (Pallas' interpret mode writes them
+        # back).
+        slot = jnp.where(reached, rank, listed_ref.shape[1])
+        plt.store(listed_ref.at[jnp.broadcast_to(row, at.shape), slot], at, mask=reached)
+
+    def summing():
+        r = pl.ds(row - sources, 1)
+        part = jnp.where(at >= lo, counted_ref[r, pl.ds(start, chunk)], 0)
+        sums_ref[r, pl.ds(c, 1)] = jnp.sum(part, axis=1, keepdims=True)
+
+    if counted:
+        jax.lax.cond(row < sources, listing, summing)
+    else:
+        listing()
+
+
+def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Reached:
+    """The lists of `batch`'s source rows (`Reached`), and the sums of `counted`'s rows
+    (`[C, B]` int32: a counted row sums every entry, reached or not). XLA counts each
+    chunk's reached entries; one program per chunk lists them, or sums a counted row's."""
+    sources, width = batch.ok.shape
+    size = chunk(width)
+    n = -(-width // size)
+    hit = (batch.ok | (batch.bad != 0)).astype(jnp.int32)
+    counts = jnp.sum(jnp.pad(hit, ((0, 0), (0, n * size - width))).reshape(sources, n, size), 2)
+    counts = jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
+
+    def whole(a):
+        return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
+
+    ins = [batch.ok, batch.bad, counts]
+    rows = counted.shape[0]
+    if rows:
+        # Padded to whole multiples of the source rows: shaped like the batch, XLA writes
+        # it in the batch's own kernel, where `[C, B]` is one more kernel per step.
+        more = -(-rows // sources) * sources - rows
+        ins.append(jnp.pad(counted, ((0, more), (0, 0))))
+    outs = [jax.ShapeDtypeStruct((sources, n * size), jnp.int32)]
+    outs += [jax.ShapeDtypeStruct((rows, n), jnp.int32)] if rows else []
+    listed, *sums = pl.pallas_call(
+        functools.partial(_list_kernel, batch=width, chunk=size, counted=rows),
+        out_shape=tuple(outs),
+        grid=(sources + rows, n),
+        in_specs=[whole(a) for a in ins],
+        out_specs=tuple(whole(o) for o in outs),
+        interpret=interpret,
+        compiler_params=None if interpret else plt.CompilerParams(num_warps=4),
+    )(*ins)
+    # The chunks' sums added elementwise: XLA computes them in the kernel that updates
+    # the per-row state, where a reduction would be a kernel of its own.
+    sums = functools.reduce(jnp.add, [sums[0][:, j] for j in range(n)]) if rows else counts[:0, 0]
+    return Reached(listed, counts), sums
