@@ -33,6 +33,7 @@ import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
+from . import _reached
 from ._chunks import FLAGGED, chunk_counts, chunking, combine, reads_counts
 from ._selected import Selected
 
@@ -114,6 +115,7 @@ def _kernel(
     rows: int,
     batch: int,
     grouped: bool,
+    gather: int = 0,
 ):
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
     sizes, `packs` the counted rows per batch row (`counted`: read from a counted input;
@@ -142,10 +144,12 @@ def _kernel(
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
-    chunk, n_chunks, _ = chunking(rows, batch, grouped)
+    if gather:
+        listed_ref, reached_ref, *refs = refs
+    chunk, n_chunks, _ = (gather, 1, False) if gather else chunking(rows, batch, grouped)
     ranked = ema or bool(rings)
     counts_ref = None
-    if reads_counts(rows, batch, grouped, ranked):
+    if not gather and reads_counts(rows, batch, grouped, ranked):
         counts_ref, *refs = refs
     if counted:
         counted_ref, *refs = refs
@@ -161,17 +165,20 @@ def _kernel(
     src, kind, group = entry(Table.SRC), entry(Table.KIND), entry(Table.GROUP)
     counted_rows = [entry(Table.COUNTED + p) for p in range(packs)]
 
-    def reader(start, n: int, fresh) -> tuple[Callable[..., jax.Array], jax.Array | None]:
-        """What reads a row of an input at `n` entries from `start`, those not `fresh`
-        (None: all are) masked out, and where the group index there is the row's group
-        (None: not a group row)."""
-        cols = pl.ds(start, n)
+    def reader(start, n: int, fresh, cols=None):
+        """What reads a row of an input at `n` entries from `start` (or at the entries
+        `cols`, `[1, n]`), those not `fresh` (None: all are) masked out, and where the
+        group index there is the row's group (None: not a group row)."""
         full = jnp.ones((1, n), jnp.bool_) if fresh is None else fresh
 
         def at(ref, row, where=full):
+            other = jnp.zeros((), ref.dtype)
+            if cols is not None:
+                rows = jnp.broadcast_to(row, (1, n))
+                return plt.load(ref.at[rows, cols], mask=where, other=other)
             if fresh is None and where is full:
-                return ref[pl.ds(row, 1), cols]
-            return plt.load(ref.at[pl.ds(row, 1), cols], mask=where, other=jnp.zeros((), ref.dtype))
+                return ref[pl.ds(row, 1), pl.ds(start, n)]
+            return plt.load(ref.at[pl.ds(row, 1), pl.ds(start, n)], mask=where, other=other)
 
         if not grouped:
             return at, None
@@ -183,10 +190,10 @@ def _kernel(
         m = at(m_ref, src)
         return m if match is None else m & match
 
-    def read(start, n: int, fresh) -> tuple[list[jax.Array], Callable[[], jax.Array]]:
+    def read(start, n: int, fresh, cols=None) -> tuple[list[jax.Array], Callable[[], jax.Array]]:
         """The row's mask, non-finite flags and counted rows at `n` entries from `start`
-        (`reader`), and what reads its values there."""
-        at, match = reader(start, n, fresh)
+        or at `cols` (`reader`), and what reads its values there."""
+        at, match = reader(start, n, fresh, cols)
         m, bad = at(m_ref, src), at(bad_ref, src)
         values = functools.partial(at, x_ref, src)
         if match is not None:
@@ -266,14 +273,55 @@ def _kernel(
     empty = (fzero, fzero + jnp.inf, fzero - jnp.inf) + (fzero,) * 4
 
     def fold_chunk():
+        if gather:
+            return fold_listed()
         loaded = [load(j) for j in range(n_blocks)] if n_chunks == 1 else load_chunk(chunk_id)
 
-        def blocks(body, init, *per_block):
-            """`body(*a block's mask, flags, counted..., *its entries of per_block, carry)`
+        def blocks(body, init, xs=None, *extra):
+            """`body(*a block's mask, flags, counted..., [its values of xs,] *extra, carry)`
             folded over the chunk's blocks."""
             for j, (marks, _) in enumerate(loaded):
-                init = body(*marks, *(b[j] for b in per_block), init)
+                init = body(*marks, *([] if xs is None else [xs[j]]), *extra, init)
             return init
+
+        fold_blocks(blocks, lambda: [values() for _, values in loaded])
+
+    def fold_listed():
+        # The row read from its source row's list of reached entries (`_reached`): in one
+        # block of `gather` entries at most steps, loaded once for every pass; else in
+        # blocks of a listing chunk, loaded by each pass.
+        src_row = pl.ds(src, 1)
+        listed = jnp.sum(reached_ref[src_row, :])
+
+        def block(start, n: int):
+            there = jax.lax.broadcasted_iota(jnp.int32, (1, n), 1) + start < listed
+            cols = plt.load(listed_ref.at[src_row, pl.ds(start, n)], mask=there, other=0)
+            return read(None, n, there, cols)
+
+        def one_block():
+            marks, values = block(0, chunk)
+            x = values()
+
+            def blocks(body, init, xs=None, *extra):
+                return body(*marks, *([] if xs is None else [x]), *extra, init)
+
+            fold_blocks(blocks, lambda: True)
+
+        def blocks_of(size: int):
+            def blocks(body, init, xs=None, *extra):
+                def step(j, carry):
+                    marks, values = block(j * size, size)
+                    return body(*marks, *([] if xs is None else [values()]), *extra, carry)
+
+                return jax.lax.fori_loop(0, (listed + size - 1) // size, step, init)
+
+            fold_blocks(blocks, lambda: True)
+
+        jax.lax.cond(listed <= chunk, one_block, lambda: blocks_of(_reached.chunk(batch)))
+
+    def fold_blocks(blocks, values_of):
+        """The row's statistics folded over its blocks: `blocks(body, init, xs, *extra)`
+        folds `body` over them, with each block's values from `xs` (`values_of()`)."""
 
         def counts(m, bad, *rest):
             *counted, acc = rest
@@ -347,11 +395,11 @@ def _kernel(
             # rounded mean `p`, corrected by the mean of the second deviations (exact for
             # any `p`; accurate for one near the mean, as a float32 sum of values far from
             # zero gives).
-            xs = [values() for _, values in loaded]
+            xs = values_of()
             init = (fzero, fzero + jnp.inf, fzero - jnp.inf, fzero)
             xsum, xmin, xmax, dsum = blocks(first, init, xs)
             p = dsum / k
-            _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), xs, [p] * len(xs))
+            _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), xs, p)
             return xsum, xmin, xmax, p, s1, s2, wsum
 
         write(*jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty), total, nbad, csums)
@@ -389,6 +437,7 @@ def fold(
     ema: EmaIn | None = None,
     rings: tuple[RingIn, ...] = (),
     interpret: bool = False,
+    listed: bool | None = None,
 ) -> tuple[Batch, tuple[jax.Array, ...]]:
     """Folds the rows `[R, B]` that `batch` selects (`Selected`; float32 values, bool
     mask, int32 non-finite flags): their statistics (`Batch`; `shift[R]` float32, and the
@@ -401,13 +450,22 @@ def fold(
     entries, with `after` how many masked-in entries follow each one; `off` is `ema_off`
     for a seeded row (`ema_w > 0`), else `shift`, and the first arrival of an unseeded
     EMA row seeds it, weighing `(1-c)^after` instead. `interpret` runs it anywhere,
-    slowly (Pallas' interpret mode).
+    slowly (Pallas' interpret mode). `listed`: whether group rows are read from the lists
+    of reached entries (`_reached`; None: where `_reached.listed`).
     """
     rows, width = batch.rows, batch.batch
-    chunk, n_chunks, _ = chunking(rows, width, batch.grouped)
+    if listed is None:
+        listed = _reached.listed(sum(k >= 0 for k in batch.kind), batch.grouped)
+    gather = _reached.block(width) if listed else 0
+    chunk, n_chunks, _ = (gather, 1, False) if gather else chunking(rows, width, batch.grouped)
+    # The counted rows are summed over every entry, not the reached ones: read with the
+    # batch, or where the rows are read from the lists, by the listing's kernel.
+    counted_here = bool(packs and counted.shape[0]) and not listed
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
     at = np.arange(rows, dtype=np.int32)[:, None] + rows * np.arange(packs, dtype=np.int32)
     table = [coeff.view(np.int32)[:, None], batch.table(), np.where(at < counted.shape[0], at, -1)]
+    if not counted_here:
+        table[-1] = np.full_like(at, -1)
     for r in rings:
         table += [np.stack([np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)], 1)]
     table = np.concatenate(table, axis=1).astype(np.int32)
@@ -434,9 +492,12 @@ def fold(
     ]
     if batch.grouped:
         args.append((batch.ids, whole(batch.ids)))
-    if reads_counts(rows, width, batch.grouped, ema is not None or bool(rings)):
+    if gather:
+        lists, counted_sums = _reached.reached(batch, counted if packs else counted[:0], interpret)
+        args += [(a, whole(a)) for a in lists]
+    elif reads_counts(rows, width, batch.grouped, ema is not None or bool(rings)):
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
-    if packs and counted.shape[0]:
+    if counted_here:
         # Padded to whole multiples of the source rows: shaped like the batch, XLA writes
         # it in the batch's own kernel, where `[C, B]` is one more kernel per step.
         sources = batch.values.shape[0]
@@ -459,10 +520,11 @@ def fold(
         ema=ema is not None,
         rings=tuple(r.data.shape[1] for r in rings),
         packs=packs,
-        counted=bool(packs and counted.shape[0]),
+        counted=counted_here,
         rows=rows,
         batch=width,
         grouped=batch.grouped,
+        gather=gather,
     )
     # A program of group rows mostly finds its chunk empty or nearly so: with fewer warps
     # more such programs run at once (docs/benchmarks.md, "Per-group statistics").
@@ -480,11 +542,15 @@ def fold(
     floats = floats.reshape(rows, n_chunks, 8)
     ints = ints.reshape(rows, n_chunks, n_int)
     floats, ints = (floats[:, 0], ints[:, 0]) if n_chunks == 1 else combine(floats, ints)
+    if listed:
+        counted_sums = jnp.pad(counted_sums, (0, rows * packs - counted_sums.shape[0]))
+    else:
+        counted_sums = ints[:, 2 : 2 + packs].T.reshape(-1)
     stats = Batch(
         ints[:, 0],
         *(floats[:, i] for i in range(5)),
         ints[:, 1],
         floats[:, 5] if ema is not None else None,
-        ints[:, 2 : 2 + packs].T.reshape(-1),
+        counted_sums,
     )
     return stats, tuple(data)
