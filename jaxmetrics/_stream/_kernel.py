@@ -455,7 +455,8 @@ def fold(
     """
     rows, width = batch.rows, batch.batch
     if listed is None:
-        listed = _reached.listed(sum(k >= 0 for k in batch.kind), batch.grouped)
+        ranked = ema is not None or bool(rings)
+        listed = _reached.listed(sum(k >= 0 for k in batch.kind), width, ranked)
     gather = _reached.block(width) if listed else 0
     chunk, n_chunks, _ = (gather, 1, False) if gather else chunking(rows, width, batch.grouped)
     # The counted rows are summed over every entry, not the reached ones: read with the

@@ -20,13 +20,14 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
+from ._chunks import COUNTED_HERE
 from ._selected import Selected
 
 CHUNK = 1024
 """Entries per program of the listing."""
 ROWS = 64
-"""Group rows from which a batch's group rows are read from the lists (fewer read the
-batch: the listing's two kernels cost more than they save)."""
+"""Group rows without ranks from which a batch of up to `_chunks.COUNTED_HERE` entries
+reads them from the lists (`listed`)."""
 
 
 class Reached(NamedTuple):
@@ -39,10 +40,15 @@ class Reached(NamedTuple):
     counts: jax.Array
 
 
-def listed(rows: int, grouped: bool) -> bool:
-    """Whether `rows` group rows of a batch (`grouped`: of a batch with group rows) are
-    read from the lists."""
-    return grouped and rows >= ROWS
+def listed(rows: int, batch: int, ranked: bool) -> bool:
+    """Whether the `rows` group rows of a batch of `batch` entries are read from the
+    lists; `ranked`: with an EMA or a ring. Rows with ranks always are (from the batch,
+    every chunk of a row counts the row's arrivals around it), and so are rows past
+    `_chunks.COUNTED_HERE` entries (from the batch, their chunks are counted by XLA
+    first). The period statistics of fewer than `ROWS` group rows over a smaller batch
+    fold their chunks from the batch at less than the listing's two kernels cost
+    (docs/benchmarks.md, "Per-group statistics")."""
+    return rows > 0 and (ranked or batch > COUNTED_HERE or rows >= ROWS)
 
 
 def block(batch: int) -> int:

@@ -720,7 +720,7 @@ def test_fused_kernel_serves_float32_batches_of_32_to_65536(monkeypatch, num_env
     [(64, 30, 0, True, False), (300, 10, 0, True, False), (3000, 10, 0, True, False)]
     + [(4097, 10, 0, True, False), (12288, 10, 0, True, False), (300, 10, 3, True, False)]
     + [(4097, 10, 3, True, False), (300, 10, 3, False, False), (4097, 10, 3, False, False)]
-    + [(300, 10, 3, True, True)],
+    + [(300, 10, 3, True, True), (4097, 10, 3, False, True)],
 )
 def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     monkeypatch, num_envs, steps, groups, ranked, listed
@@ -733,12 +733,11 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     # with `groups`, each metric also per group (indices out of range included), its
     # group rows read by the kernel from the ungrouped batch; not `ranked`: the period
     # statistics only, which the kernel folds for group rows; `listed`: the group rows
-    # read from the lists of reached entries (`_reached`; else from the batch, as
-    # under `_reached.ROWS` group rows).
+    # read from the lists of reached entries (`_reached`), else from the batch.
     from jaxmetrics import _stream
     from jaxmetrics._stream import _reached
 
-    monkeypatch.setattr(_reached, "ROWS", 1 if listed else 10**9)
+    monkeypatch.setattr(_reached, "listed", lambda *_: listed)
 
     stats = {
         "a": ("mean", jm.ema(0.05), jm.window(7)),
