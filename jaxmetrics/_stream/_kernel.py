@@ -182,7 +182,16 @@ def _kernel(
 
         if not grouped:
             return at, None
-        return at, (kind < 0) | (at(ids_ref, jnp.maximum(kind, 0)) == group)
+        match = (kind < 0) | (at(ids_ref, jnp.maximum(kind, 0)) == group)
+        if cols is None:
+            return at, match
+
+        def at_group(ref, row, where=full):
+            # A list holds every group's entries: another group's are not loaded at all
+            # (the row's program would read each one its source row's groups times).
+            return at(ref, row, where & match)
+
+        return at_group, match
 
     def mask_at(start, n: int, fresh) -> jax.Array:
         """The row's mask at `n` entries from `start` (`reader`)."""
