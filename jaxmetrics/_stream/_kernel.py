@@ -13,7 +13,10 @@ aliased to the outputs; other rows never touch a row's slots). With the full spe
 then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
 
 A group row (`_stream.Selected`) is read from its metric's row of the batch and the group
-index, its mask built as it is loaded; the batch is not copied per group.
+index, its mask built as it is loaded; the batch is not copied per group. Where `fold`
+takes the rows from the lists of reached entries (`_reached`), each program reads its row
+from its source row's list instead: as many entries as reach the source row on the step,
+most steps one block.
 
 A row longer than `_chunks.ONE_PROGRAM` entries is folded by one program per chunk of it
 (`_chunks`: how rows are chunked, the chunks' counts that XLA takes before the kernel,
@@ -125,7 +128,11 @@ def _kernel(
 
     The row is read from its source row of the batch (`Selected`), with its mask built
     as it is read: the source's mask and, for a group row (`grouped`), its group index
-    equal to the row's group; its non-finite flags count in the same group.
+    equal to the row's group; its non-finite flags count in the same group. With
+    `gather` (one program per row, no counted row), at the entries of its source row's
+    list (`listed`, `[S, W]`; its length the sum of `reached`'s row, `_reached.Reached`)
+    in blocks of `gather` entries, in entry order: ranks, EMA weights and ring slots come
+    out as from the batch.
 
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
     blocks (`blocking`), the last ending at the row's end with the entries already
