@@ -172,7 +172,9 @@ def _kernel(
     src, kind, group = entry(Table.SRC), entry(Table.KIND), entry(Table.GROUP)
     counted_rows = [entry(Table.COUNTED + p) for p in range(packs)]
 
-    def reader(start, n: int, fresh, cols=None):
+    def reader(
+        start, n: int, fresh, cols=None
+    ) -> tuple[Callable[..., jax.Array], jax.Array | None]:
         """What reads a row of an input at `n` entries from `start` (or at the entries
         `cols`, `[1, n]`), those not `fresh` (None: all are) masked out, and where the
         group index there is the row's group (None: not a group row)."""
@@ -307,10 +309,10 @@ def _kernel(
         # block of `gather` entries at most steps, loaded once for every pass; else in
         # blocks of a listing chunk, loaded by each pass.
         src_row = pl.ds(src, 1)
-        listed = jnp.sum(reached_ref[src_row, :])
+        length = jnp.sum(reached_ref[src_row, :])
 
         def block(start, n: int):
-            there = jax.lax.broadcasted_iota(jnp.int32, (1, n), 1) + start < listed
+            there = jax.lax.broadcasted_iota(jnp.int32, (1, n), 1) + start < length
             cols = plt.load(listed_ref.at[src_row, pl.ds(start, n)], mask=there, other=0)
             return read(None, n, there, cols)
 
@@ -329,11 +331,11 @@ def _kernel(
                     marks, values = block(j * size, size)
                     return body(*marks, *([] if xs is None else [values()]), *extra, carry)
 
-                return jax.lax.fori_loop(0, (listed + size - 1) // size, step, init)
+                return jax.lax.fori_loop(0, (length + size - 1) // size, step, init)
 
             fold_blocks(blocks, lambda: True)
 
-        jax.lax.cond(listed <= chunk, one_block, lambda: blocks_of(_reached.chunk(batch)))
+        jax.lax.cond(length <= chunk, one_block, lambda: blocks_of(_reached.chunk(batch)))
 
     def fold_blocks(blocks, values_of):
         """The row's statistics folded over its blocks: `blocks(body, init, xs, *extra)`
@@ -466,8 +468,9 @@ def fold(
     entries, with `after` how many masked-in entries follow each one; `off` is `ema_off`
     for a seeded row (`ema_w > 0`), else `shift`, and the first arrival of an unseeded
     EMA row seeds it, weighing `(1-c)^after` instead. `interpret` runs it anywhere,
-    slowly (Pallas' interpret mode). `listed`: whether group rows are read from the lists
-    of reached entries (`_reached`; None: where `_reached.listed`).
+    slowly (Pallas' interpret mode). `listed`: whether the rows are read from the lists of
+    reached entries (`_reached`; None: where `_reached.listed` says for the batch's group
+    rows), else from the batch.
     """
     rows, width = batch.rows, batch.batch
     if listed is None:

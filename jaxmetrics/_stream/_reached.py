@@ -6,10 +6,11 @@ episodes end (1% of them at an episode of 100 steps). Folded from the batch, eac
 `groups x sources` rows reads every entry to find its few: work in rows x entries, where
 the entries that reach any are sources x arrivals. Listed first, per source row, in
 entry order (one cumulative count per chunk of the row, and a store of each reached
-entry's index at its rank), each group row is then read from its source row's list
-(`_kernel`, `gather`): as many entries as the list has, in the order of the batch, so
-that ranks, EMA weights and ring slots come out as from the batch itself. A step where
-every entry arrives lists them all, and the group rows then read the whole batch.
+entry's index at its rank), every row of the batch, group rows and overall rows alike,
+is then read from its source row's list (`_kernel`, `gather`): as many entries as the
+list has, in the order of the batch, so that ranks, EMA weights and ring slots come out
+as from the batch itself. A step where every entry arrives lists them all, and the rows
+then read the whole batch.
 """
 
 import functools
@@ -41,18 +42,18 @@ class Reached(NamedTuple):
 
 
 def listed(rows: int, batch: int, ranked: bool) -> bool:
-    """Whether the `rows` group rows of a batch of `batch` entries are read from the
-    lists; `ranked`: with an EMA or a ring. Rows with ranks always are (from the batch,
-    every chunk of a row counts the row's arrivals around it), and so are rows past
-    `_chunks.COUNTED_HERE` entries (from the batch, their chunks are counted by XLA
-    first). The period statistics of fewer than `ROWS` group rows over a smaller batch
-    fold their chunks from the batch at less than the listing's two kernels cost
-    (docs/benchmarks.md, "Per-group statistics")."""
+    """Whether a batch of `batch` entries with `rows` group rows is read from the lists
+    (every row of it); `ranked`: with an EMA or a ring. Rows with ranks always are
+    (from the batch, every chunk of a row counts the row's arrivals around it), and
+    so are rows past `_chunks.COUNTED_HERE` entries (from the batch, their chunks
+    are counted by XLA first). The period statistics of fewer than `ROWS` group rows
+    over a smaller batch fold their chunks from the batch at less than the listing's
+    two kernels cost (docs/benchmarks.md, "Per-group statistics")."""
     return rows > 0 and (ranked or batch > COUNTED_HERE or rows >= ROWS)
 
 
 def block(batch: int) -> int:
-    """The entries a group row reads from its list at a time: about one in 64 of the
+    """The entries a row reads from its list at a time: about one in 64 of the
     batch's, so that a step's arrivals (an episode's last step, at 1 in 100 or fewer of
     them) take one block; at most a chunk, at least 32."""
     return min(chunk(batch), max(32, pl.next_power_of_2(-(-batch // 64))))

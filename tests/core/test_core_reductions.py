@@ -495,10 +495,12 @@ def test_fused_kernel_skips_only_chunks_that_nothing_reaches(rows, batch, groups
     # block: 32 entries at 300, 64 at 2,100, 128 at 4,097), flags alone (an empty mask),
     # and masks half full or full with flags on half the entries (lists of several
     # blocks, in chunks of 256 and 1,024 entries, the last one overlapping the one
-    # before); group indices uniform, or in a few groups.
+    # before; 40 entries: two chunks of 32 that overlap); group indices uniform, or in a
+    # few groups.
     [(300, 8, 5, 8, 0.005, True), (2100, 64, 5, 3, 0.005, True), (4097, 64, 700, 0, 0.005, True)]
     + [(2100, 64, 5, 9, 0.005, True), (4097, 64, 3, 0, 0.005, False)]
-    + [(300, 3, 5, 1, None, True), (2100, 3, 16, 4, None, True), (4097, 2, 3000, 2, None, True)],
+    + [(300, 3, 5, 1, None, True), (2100, 3, 16, 4, None, True), (4097, 2, 3000, 2, None, True)]
+    + [(40, 64, 3, 7, None, True)],
 )
 def test_fused_kernel_reads_group_rows_from_the_lists_of_reached_entries(
     batch, groups, size, seed, flags, ranked
