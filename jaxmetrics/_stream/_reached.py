@@ -60,7 +60,7 @@ def block(batch: int) -> int:
 
 
 def chunk(batch: int) -> int:
-    """Entries per program of the listing (and per block of a group row's long list)."""
+    """Entries per program of the listing (and per block of a row's long list)."""
     return min(CHUNK, 1 << (batch.bit_length() - 1))
 
 
