@@ -107,9 +107,25 @@ def chunk_counts(batch: Selected, chunk: int) -> jax.Array:
         row = jnp.where(add > 0, row, rows)
         zeros = jnp.zeros((rows, pl.next_power_of_2(n)), jnp.int32)
         return zeros.at[row, jnp.broadcast_to(at, row.shape)].add(add, mode="drop")
-    padded = jnp.pad(marks(*batch.dense()[1:]), ((0, 0), (0, n * chunk - width)))
+    return per_chunk(marks(*batch.dense()[1:]), chunk)
+
+
+def per_chunk(marks: jax.Array, chunk: int) -> jax.Array:
+    """Each row of `marks` (`[R, B]` int32) summed over each chunk of `chunk` entries
+    (`[R, n]` int32, zero-padded to a power of two `n`)."""
+    rows, width = marks.shape
+    n = -(-width // chunk)
+    padded = jnp.pad(marks, ((0, 0), (0, n * chunk - width)))
     counts = jnp.sum(padded.reshape(rows, n, chunk), axis=2, dtype=jnp.int32)
     return jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
+
+
+def counted_input(counted: jax.Array, sources: int) -> jax.Array:
+    """The counted rows (`[C, B]`) as a kernel reads them: padded to whole multiples of
+    the batch's `sources` rows, so that XLA writes them in the batch's own kernel, where
+    `[C, B]` is one more kernel per step."""
+    more = -(-counted.shape[0] // sources) * sources - counted.shape[0]
+    return jnp.pad(counted, ((0, more), (0, 0)))
 
 
 def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:

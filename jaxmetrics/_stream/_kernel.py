@@ -37,7 +37,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 from . import _reached
-from ._chunks import FLAGGED, chunk_counts, chunking, combine, reads_counts
+from ._chunks import FLAGGED, chunk_counts, chunking, combine, counted_input, reads_counts
 from ._selected import Selected
 
 MIN_BATCH = 32
@@ -518,11 +518,7 @@ def fold(
     elif reads_counts(rows, width, batch.grouped, ema is not None or bool(rings)):
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
     if counted_here:
-        # Padded to whole multiples of the source rows: shaped like the batch, XLA writes
-        # it in the batch's own kernel, where `[C, B]` is one more kernel per step.
-        sources = batch.values.shape[0]
-        more = -(-counted.shape[0] // sources) * sources - counted.shape[0]
-        padded = jnp.pad(counted, ((0, more), (0, 0)))
+        padded = counted_input(counted, batch.values.shape[0])
         args.append((padded, whole(padded)))
     if ema is not None:
         args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-from ._chunks import COUNTED_HERE
+from ._chunks import COUNTED_HERE, counted_input, per_chunk
 from ._selected import Selected
 
 CHUNK = 1024
@@ -110,9 +110,7 @@ def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Rea
     sources, width = batch.ok.shape
     size = chunk(width)
     n = -(-width // size)
-    hit = (batch.ok | (batch.bad != 0)).astype(jnp.int32)
-    counts = jnp.sum(jnp.pad(hit, ((0, 0), (0, n * size - width))).reshape(sources, n, size), 2)
-    counts = jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
+    counts = per_chunk((batch.ok | (batch.bad != 0)).astype(jnp.int32), size)
 
     def whole(a):
         return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
@@ -120,10 +118,7 @@ def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Rea
     ins = [batch.ok, batch.bad, counts]
     rows = counted.shape[0]
     if rows:
-        # Padded to whole multiples of the source rows: shaped like the batch, XLA writes
-        # it in the batch's own kernel, where `[C, B]` is one more kernel per step.
-        more = -(-rows // sources) * sources - rows
-        ins.append(jnp.pad(counted, ((0, more), (0, 0))))
+        ins.append(counted_input(counted, sources))
     outs = [jax.ShapeDtypeStruct((sources, n * size), jnp.int32)]
     outs += [jax.ShapeDtypeStruct((rows, n), jnp.int32)] if rows else []
     listed, *sums = pl.pallas_call(
