@@ -8,10 +8,8 @@ chunk's program needs the row's masked-in entries before and after it, from whic
 knows how many of the row's arrivals follow each of its own (its ranks, EMA weights and
 ring slots are the row's): it counts them in the row's mask itself, or one small XLA
 reduction first counts each chunk's (`chunk_counts`); without either it needs no rank.
-Where that reduction counts the chunks of group rows (`reads_counts`), it also counts
-their non-finite flags, and a chunk that no entry reaches, most chunks of group rows at
-most steps, reads nothing but its count. The chunks' partial statistics are combined
-after the kernel, in the kernel that updates the per-row state (`combine`).
+The chunks' partial statistics are combined after the kernel, in the kernel that updates
+the per-row state (`combine`).
 """
 
 import functools
@@ -19,7 +17,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax.experimental import pallas as pl
 
 from ._selected import Selected
@@ -28,13 +25,8 @@ ONE_PROGRAM = 1024
 COUNTED_HERE = 4096
 PROGRAMS = 128
 ALWAYS_CHUNKED = 2048
-SCATTER_COUNTS = 32
-"""Rows per (source row, grouping) from which `chunk_counts` scatters."""
 COMBINED_BY_REDUCTIONS = 256
 """Rows from which `combine` reduces over the chunks (else folds them elementwise)."""
-FLAGGED = 1 << 16
-"""What an entry of a group row with a non-finite flag adds to its chunk's count
-(`chunk_counts`; a masked-in one adds 1, and a chunk has at most 2,048 entries)."""
 
 
 class Chunking(NamedTuple):
@@ -75,39 +67,16 @@ def chunking(rows: int, batch: int, grouped: bool = False) -> Chunking:
 def reads_counts(rows: int, batch: int, grouped: bool, ranked: bool) -> bool:
     """Whether the kernel reads `chunk_counts` of its `rows` rows of `batch` entries: where
     they are chunked and not `counted_here`, for the ranks (`ranked`: with an EMA or a
-    ring) and, with group rows, to skip the chunks that nothing reaches."""
+    ring)."""
     _, n, counted_here = chunking(rows, batch, grouped)
-    return n > 1 and not counted_here and (ranked or (grouped and batch > COUNTED_HERE))
+    return n > 1 and not counted_here and ranked
 
 
 def chunk_counts(batch: Selected, chunk: int) -> jax.Array:
     """Per row that `batch` selects: its masked-in entries in each chunk of `chunk`
-    entries (`[R, n]` int32, zero-padded to a power of two `n`), plus, with group rows,
-    `FLAGGED` times those with a non-finite flag (a chunk that neither reaches is
-    skipped). XLA reduces the rows' masks, computing them from the source rows within the
-    reduction; with many group rows per source row (`SCATTER_COUNTS`), one scatter of
-    each source row's entries into their group's row (`Selected.row_of`) instead: the
-    masks are rows x entries, read in full for a few arrivals, where the scatter reads
-    each source row once per grouping (slower with few groups, its updates being as
-    many)."""
-    rows, width = batch.rows, batch.batch
-    n = -(-width // chunk)
-
-    def marks(ok, bad):
-        if not batch.grouped:
-            return ok.astype(jnp.int32)
-        return ok.astype(jnp.int32) + jnp.where(bad != 0, FLAGGED, 0)
-
-    if rows >= SCATTER_COUNTS * len(set(zip(batch.src, batch.kind))):
-        at = jnp.asarray(np.arange(width, dtype=np.int32) // chunk)
-        src, row = batch.row_of(masked=False)
-        add = marks(*(jnp.take(a, src, axis=0) for a in (batch.ok, batch.bad)))
-        # Entries that reach no row are dropped before the scatter: adding their zeros
-        # would be an update each, contending on the few rows.
-        row = jnp.where(add > 0, row, rows)
-        zeros = jnp.zeros((rows, pl.next_power_of_2(n)), jnp.int32)
-        return zeros.at[row, jnp.broadcast_to(at, row.shape)].add(add, mode="drop")
-    return per_chunk(marks(*batch.dense()[1:]), chunk)
+    entries (`per_chunk`). XLA reduces the rows' masks, computing them from the source
+    rows within the reduction."""
+    return per_chunk(batch.dense()[1].astype(jnp.int32), chunk)
 
 
 def per_chunk(marks: jax.Array, chunk: int) -> jax.Array:

@@ -37,7 +37,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 from . import _reached
-from ._chunks import FLAGGED, chunk_counts, chunking, combine, counted_input, reads_counts
+from ._chunks import chunk_counts, chunking, combine, counted_input, reads_counts
 from ._selected import Selected
 
 MIN_BATCH = 32
@@ -123,8 +123,7 @@ def _kernel(
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
     sizes, `packs` the counted rows per batch row (`counted`: read from a counted input;
     else none has any). `table` holds the row's static ints (`Table`); `counts`
-    (`reads_counts`) the row's masked-in entries per chunk, with group rows plus
-    `FLAGGED` times its flagged ones.
+    (`reads_counts`) the row's masked-in entries per chunk.
 
     The row is read from its source row of the batch (`Selected`), with its mask built
     as it is read: the source's mask and, for a group row (`grouped`), its group index
@@ -141,8 +140,7 @@ def _kernel(
     masked-in entries then reads its values and makes two passes over them: the first
     sums what needs no arrival rank, the second takes the ranks, the moments around the
     first pass's mean, the EMA's weighted sum and the ring writes. A chunk without any
-    (at most steps, most chunks of group rows) skips both; with group rows, one that its
-    count shows nothing reaches reads nothing at all. A chunk's ranks add the row's
+    (at most steps, most chunks of group rows) skips both. A chunk's ranks add the row's
     masked-in entries in later chunks (counted in the row's mask by `_masked_in_around`,
     or from `counts`), and its EMA weights and ring slots follow from those global ranks
     and the row's count. Its mean deviation is also written off a pivot that every chunk
@@ -246,20 +244,12 @@ def _kernel(
     chunk_id = pl.program_id(1) if n_chunks > 1 else 0
     izero = jnp.zeros((1, 1), jnp.int32)
     fzero = jnp.zeros((1, 1), jnp.float32)
-    later = touched = None
+    later = None
     if counts_ref is not None:
         marks = counts_ref[...]
         at = jax.lax.broadcasted_iota(jnp.int32, marks.shape, 1)
-        if grouped:
-            # A chunk that no entry of the row reaches, masked in or flagged, and no
-            # counted row reads nothing: most chunks of group rows, at most steps.
-            touched = row_sum(jnp.where(at == chunk_id, marks, 0)) > 0
-            if counted:
-                touched |= functools.reduce(jnp.logical_or, [c >= 0 for c in counted_rows])
-        if ranked:
-            arrived = marks & (FLAGGED - 1)
-            earlier = row_sum(jnp.where(at < chunk_id, arrived, 0))
-            later = row_sum(jnp.where(at > chunk_id, arrived, 0))
+        earlier = row_sum(jnp.where(at < chunk_id, marks, 0))
+        later = row_sum(jnp.where(at > chunk_id, marks, 0))
     elif n_chunks > 1 and ranked:
         lo = chunk_id * chunk
         earlier, later = _masked_in_around(mask_at, batch, lo, jnp.minimum(lo + chunk, batch))
@@ -422,11 +412,7 @@ def _kernel(
 
         write(*jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty), total, nbad, csums)
 
-    if touched is None:
-        fold_chunk()
-    else:
-        untouched = functools.partial(write, *empty, izero, izero, (izero,) * packs)
-        jax.lax.cond(jnp.sum(touched) > 0, fold_chunk, untouched)
+    fold_chunk()
 
 
 class Batch(NamedTuple):

@@ -472,20 +472,19 @@ def test_fused_kernel_folds_group_rows_without_ranks(rows, batch, groups, seed):
 
 @pytest.mark.parametrize(
     ("rows", "batch", "groups", "ranked", "seed"),
-    # Chunks counted by XLA: 64 groups over 2,100 entries (with ranks: EMA, ring) and
-    # 4,097 (with ranks and without: period statistics read counts past 4,096 entries);
-    # 4 x 65 rows, whose chunks `combine` reduces over. Seeds drawn for uniform group
-    # indices and masks 2% full, so that a flag alone reaches some chunks.
+    # Chunked rows: 64 groups over 2,100 entries (with ranks: EMA, ring; chunks counted
+    # by XLA) and 4,097 (with ranks and without); 4 x 65 rows, whose chunks `combine`
+    # reduces over. Seeds drawn for uniform group indices and masks 2% full, so that a
+    # flag alone reaches some chunks.
     [(1, 2100, 64, True, 3), (1, 4097, 64, False, 0), (2, 4097, 64, True, 2)]
     + [(4, 2100, 64, True, 9)],
 )
-def test_fused_kernel_skips_only_chunks_that_nothing_reaches(rows, batch, groups, ranked, seed):
-    # A chunk of a group row that no masked-in entry, no non-finite flag and no counted
-    # row reaches reads nothing. With flags on 0.5% of the entries, chunks that a flag
-    # alone reaches must still count it, and the empty chunks' partial statistics must
-    # still combine into their rows' (against the float64 loop). Counted rows on the
-    # first two rows only, as a spec's episode tallies are: a row with one is never
-    # skipped.
+def test_fused_kernel_folds_sparse_group_rows_from_the_batch(rows, batch, groups, ranked, seed):
+    # Group rows read from the batch, most of their chunks empty at these masks: with
+    # flags on 0.5% of the entries, chunks that a flag alone reaches must count it, and
+    # the empty chunks' partial statistics must combine into their rows' (against the
+    # float64 loop). Counted rows on the first two rows only, as a spec's episode
+    # tallies are.
     check_fused_kernel(rows, batch, 5, seed, groups, ranked=ranked, flags=0.005, counted_rows=2)
 
 
