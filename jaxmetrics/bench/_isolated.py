@@ -177,6 +177,8 @@ def scaling(
             "floor us/step",
             "jaxmetrics us/step",
             "x floor",
+            "simple stats us/step",
+            "simple x floor",
             "ns/env/step",
             "state bytes",
             "floor state bytes",
@@ -184,21 +186,28 @@ def scaling(
     )
     for n in env_list:
         xs, dones = inputs(n, steps)
-        spec = wl.random_spec(10)
+        full, simple = wl.random_spec(10), wl.random_spec(10, features="simple")
         vf, _ = _prepare("floor", _floor_scan(10), wl.floor_init(10, n), xs, dones, None)
-        vj, ij = _prepare("jaxmetrics", _metrics_scan(spec), spec.init(n), xs, dones, None)
-        tm, _ = measure([vf, vj], repeats)
-        f_us, j_us = (tm[k].median_s / steps * 1e6 for k in ("floor", "jaxmetrics"))
+        vj, ij = _prepare("jaxmetrics", _metrics_scan(full), full.init(n), xs, dones, None)
+        vs, _ = _prepare("simple", _metrics_scan(simple), simple.init(n), xs, dones, None)
+        tm, _ = measure([vf, vj, vs], repeats)
+        f_us, j_us, s_us = (tm[k].median_s / steps * 1e6 for k in ("floor", "jaxmetrics", "simple"))
         envs.add(
             n,
             f_us,
             j_us,
             j_us / f_us,
+            s_us,
+            s_us / f_us,
             j_us * 1e3 / n,
             ij["state_bytes"],
             tree_bytes(wl.floor_init(10, n)),
         )
         del xs, dones
+    envs.notes.append(
+        "jaxmetrics: the full 10-term spec; simple stats: the same terms with their period "
+        "statistics only (count, mean, sum, std, min, max), no EMA, window or histogram."
+    )
 
     terms = Table(
         "scaling_terms",

@@ -35,6 +35,9 @@ def _isolated(t: Table, iso: Table, tables: Sequence[Table], backend: str) -> No
 def _scaling(t: Table, envs: Table, tables: Sequence[Table], backend: str) -> None:
     terms = _find(tables, "scaling_terms")
     sizes = [(f"{r[0]:,} envs", r[3]) for r in envs.rows]
+    if "simple x floor" in envs.columns:
+        at = envs.columns.index("simple x floor")
+        sizes += [(f"{r[0]:,} envs (simple stats)", r[at]) for r in envs.rows]
     sizes += [(f"{r[0]:,} terms", r[3]) for r in (terms.rows if terms else [])]
     where, worst = max(sizes, key=lambda s: s[1])
     t.add(

@@ -128,8 +128,12 @@ def test_rows_cover_the_requested_sizes(result):
     assert [r[0] for r in sc["scaling_window"]["rows"]] == [4, 16]
     assert [r[0] for r in sc["flush"]["rows"]] == [16, 64]
     # State grows with num_envs and window size; what a flush moves does not.
-    state = [r[5] for r in sc["scaling_envs"]["rows"]]
+    at = sc["scaling_envs"]["columns"].index("state bytes")
+    state = [r[at] for r in sc["scaling_envs"]["rows"]]
     assert state[1] > state[0]
+    # The simple statistics timed beside the full spec, at every size.
+    simple = sc["scaling_envs"]["columns"].index("simple x floor")
+    assert all(r[simple] > 0 for r in sc["scaling_envs"]["rows"])
     wstate = [r[3] for r in sc["scaling_window"]["rows"]]
     # two windowed rows; a slot holds a float32 value and its uint32 arrival step
     assert wstate[1] - wstate[0] == 2 * (16 - 4) * (4 + 4)
