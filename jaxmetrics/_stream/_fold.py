@@ -67,15 +67,15 @@ def add_with_counts(
     segments: tuple[SegmentPlan, tuple[jax.Array, ...]] | None = None,
 ) -> tuple[StreamState, Count]:
     """`add` of the rows that `batch` selects (`Selected`), and `counts`
-    (`[counts_width(plan, C)]`) plus the sum of each row of `counted[C, B]` (int32), in its
-    first C entries. The sums are taken in the batch's own reduction and added in the
-    per-row fields' kernel, where separate counts would be two more kernels. `fused` lets a
-    CUDA GPU fold the batch (its reduction, arrival ranks, EMA sum and ring writes, the
-    histograms' counts) in one kernel of our own (`_kernel`, where the spec has an EMA, a
-    window, a histogram or group rows and the batch fits it; sketches keep XLA's kernels);
-    the caller passes it only for a batch that is not split over devices, which that kernel
-    cannot be. `interpret` (with `fused`) runs that kernel on any platform, in Pallas'
-    interpret mode (slow: for tests).
+    (`[counts_width(plan, C)]`) plus the sum of each row of `counted[C, B]` (int32), in
+    its first C entries. The sums are taken in the batch's own reduction and added in
+    the per-row fields' kernel, where separate counts would be two more kernels. `fused`
+    lets a CUDA GPU fold the batch (its reduction, arrival ranks, EMA sum and ring
+    writes) in one kernel of our own (`_kernel`, where the spec has an EMA, a window or
+    group rows and the batch fits it; histograms and sketches keep XLA's kernels); the caller
+    passes it only for a batch that is not split over devices, which that kernel cannot
+    be. `interpret` (with `fused`) runs that kernel on
+    any platform, in Pallas' interpret mode (slow: for tests).
 
     `segments`, for a stream with segment rows (`_segments`): its `SegmentPlan` and the
     segment sources' batch (values, ok, non-finite counts, group index, `[sources, B]`);
@@ -178,10 +178,10 @@ def add_with_counts(
 
 def _fold_rows(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, fused, interpret):
     """`_fold` of the rows `batch` selects, or where `fused`, the batch fits and the
-    spec has an EMA, a window, a histogram or group rows, `_fold_fused`; `counted` is `[C, B]` (C up
+    spec has an EMA, a window or group rows, `_fold_fused`; `counted` is `[C, B]` (C up
     to the plan's rows times the packs of `counts_width`). Ungrouped rows of the period
     statistics alone are one XLA reduction, as fast as the kernel (docs/benchmarks.md)."""
-    kernel_serves = plan.ema_rows or plan.windows or plan.hists or batch.grouped
+    kernel_serves = plan.ema_rows or plan.windows or batch.grouped
     if kernel_serves and fused and _kernel.fits(batch.batch, plan.dtype):
         return _fold_fused(plan, s, batch, shift, counted, interpret)
     return _fold_dense(plan, s, batch, shift, counted)
@@ -462,8 +462,8 @@ def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
 
 
 def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, interpret):
-    """`_fold` on a CUDA GPU (or where `interpret`): the batch's statistics, the EMA, the
-    rings and the histograms in one kernel of our own (`_kernel.fold`), which reads the rows from
+    """`_fold` on a CUDA GPU (or where `interpret`): the batch's statistics, the EMA and
+    the rings in one kernel of our own (`_kernel.fold`), which reads the rows from
     `batch`'s source rows; elsewhere `_fold` itself, of the rows as arrays."""
     rows = len(plan.rows)
     packs = counts_width(plan, counted.shape[0]) // rows
@@ -486,19 +486,16 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
         ema = None
         if plan.ema_rows:
             ema = _kernel.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off)
-        hists = []
-        for g, h in zip(plan.hists, s.hists):
-            bounds = [np.zeros(rows, np.float32) for _ in range(3)]
-            for b, v in zip(bounds, hist_bounds(g, np.float32)):
-                b[list(g.rows)] = v
-            hists.append(_kernel.HistIn(h.lo, h.hi, where_of(g.rows), *bounds))
-        stats, data, words = _kernel.fold(
-            batch, shift, s.steps, counted, packs, ema, tuple(rings), interpret, hists=hists
+        stats, data = _kernel.fold(
+            batch, shift, s.steps, counted, packs, ema, tuple(rings), interpret
         )
         data = iter(data)
         ema_data = tuple(next(data) if r.size else r.data for r in s.ema_rings)
-        hists = tuple(Count(hi, lo) for lo, hi in words)
-        return stats, ema_data, tuple(data), hists, s.hist_steps
+        hists = _pairs(
+            _hist_add_selected(g, h, z, batch, plan.dtype)
+            for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
+        )
+        return stats, ema_data, tuple(data), *hists
 
     def reference(s, batch, shift, counted):
         return _fold_dense(plan, s, batch, shift, counted)
@@ -527,28 +524,35 @@ def slot_counts_compare(slot: jax.Array, into: jax.Array) -> jax.Array:
     return into + jnp.sum(slot[:, None, :] == bins, axis=2, dtype=jnp.int32)
 
 
-def hist_bounds(g: HistGroup, dt) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row of histogram `g`: its range's `lo` and `hi`, and `norm`, its bins over
-    the range's width, in `dt` (`hist_slot`)."""
-    lo, hi = (np.asarray(b, dt) for b in (g.lo, g.hi))
-    return lo, hi, np.asarray(g.bins, dt) / (hi - lo)
-
-
-def hist_slot(bins: int, values, mask, lo, hi, norm) -> jax.Array:
+def _hist_slot(bins: int, values, mask, lo, hi) -> jax.Array:
     """Each value's histogram slot (0: under `lo`, `bins + 1`: over `hi`), or `bins + 2`
-    (no slot) where not `mask` or NaN. The bin is `floor((value - lo) * norm)`, as
-    numpy's first guess for equal-width bins: a product, which Triton computes as XLA
-    does, where its float32 division is not correctly rounded (`_kernel._hist_add`)."""
-    t = jnp.floor((values - lo) * norm)
+    (no slot) where not `mask` or NaN."""
+    t = jnp.floor((values - lo) / (hi - lo) * bins)
     inner = jnp.clip(jnp.nan_to_num(t), 0, bins - 1).astype(jnp.int32) + 1
     slot = jnp.where(values < lo, 0, jnp.where(values > hi, bins + 1, inner))
     return jnp.where(mask & ~jnp.isnan(values), slot, bins + 2)
 
 
+def _hist_add_selected(g: HistGroup, h: Count, zero: jax.Array, batch: Selected, dt):
+    """`_hist_add` of the histogram's rows that `batch` selects (`g.rows`), on a CUDA GPU:
+    each entry of a source row scattered once per grouping into the row of its group
+    (`Selected.row_of`), where the rows as arrays would be a masked copy of the source
+    per group, each scattered whole."""
+    sel = batch.take(g.rows)
+    if not sel.grouped:
+        return _hist_add(g, h, zero, *sel.dense()[:2], dt)
+    src, row = sel.row_of()
+    lo, hi = (jnp.asarray((*bound, 0.0), dt)[row] for bound in (g.lo, g.hi))
+    values = jnp.take(sel.values, src, axis=0)
+    inc = zero.at[row, _hist_slot(g.bins, values, row < sel.rows, lo, hi)].add(1, mode="drop")
+    return _count.add(h, inc), jnp.where(inc < 0, inc, 0)
+
+
 def _hist_add(g: HistGroup, h: Count, zero: jax.Array, values, mask, dt):
     """`h` with the batch counted in, and `zero` (`hist_steps`) as it was."""
-    lo, hi, norm = (jnp.asarray(b)[:, None] for b in hist_bounds(g, dt))
-    slot = hist_slot(g.bins, values, mask, lo, hi, norm)
+    lo = jnp.asarray(g.lo, dt)[:, None]
+    hi = jnp.asarray(g.hi, dt)[:, None]
+    slot = _hist_slot(g.bins, values, mask, lo, hi)
     # A scatter-add into `zero` in place: cheaper than compare-and-count on CPU and CUDA
     # (XLA does not fuse the compare into the reduction). TPUs scatter slowly: there,
     # compare and count.

@@ -69,26 +69,11 @@ class RingIn(NamedTuple):
     pos_row: np.ndarray
 
 
-class HistIn(NamedTuple):
-    """A histogram (`_stream.HistGroup`'s counts: the low and high words, `[rows, bins + 2]`
-    uint32) and per batch row: `row[r]` its histogram row (-1: none), and the float32
-    `lo[r]`, `hi[r]` and `norm[r]` (bins over the range's width) of its slot
-    (`_fold.hist_slot`)."""
-
-    lo_words: jax.Array
-    hi_words: jax.Array
-    row: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-    norm: np.ndarray
-
-
 class Table:
     """The columns of a batch row's static ints (`fold`'s `table`, `[R, n]` int32): the
     EMA coefficient's float32 bits, the row's source row, grouping (-1: none) and group
     (`Selected`), its counted row per pack (-1: none), then each ring's `row` and
-    `pos_row` (`RingIn`), then each histogram's `row` and its `lo`, `hi` and `norm`'s
-    float32 bits (`HistIn`)."""
+    `pos_row` (`RingIn`)."""
 
     COEFF, SRC, KIND, GROUP, COUNTED = range(5)
 
@@ -96,11 +81,6 @@ class Table:
     def ring(packs: int, i: int) -> int:
         """The column of ring `i`'s `row` (its `pos_row` follows)."""
         return Table.COUNTED + packs + 2 * i
-
-    @staticmethod
-    def hist(packs: int, rings: int, i: int) -> int:
-        """The column of histogram `i`'s `row` (its `lo`, `hi` and `norm` follow)."""
-        return Table.ring(packs, rings) + 4 * i
 
 
 class EmaIn(NamedTuple):
@@ -139,8 +119,6 @@ def _kernel(
     batch: int,
     grouped: bool,
     gather: int = 0,
-    hists: tuple[int, ...] = (),
-    interpret: bool = False,
 ):
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
     sizes, `packs` the counted rows per batch row (`counted`: read from a counted input;
@@ -167,13 +145,7 @@ def _kernel(
     or from `counts`), and its EMA weights and ring slots follow from those global ranks
     and the row's count. Its mean deviation is also written off a pivot that every chunk
     of the row shares (the row's first value), so that the chunks' means combine without
-    the rounding of means far from zero.
-
-    `hists` are the bin counts of the histograms (`HistIn`): the second pass counts its
-    block's masked-in entries per slot of the row's histogram and adds the counts to the
-    histogram's words in place, with atomic adds (the chunks of a row add to the same
-    row), or where `interpret`, a load and a store (Pallas' interpret mode has no masked
-    atomics; its programs run one after another)."""
+    the rounding of means far from zero."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
@@ -189,9 +161,7 @@ def _kernel(
     if ema:
         w_ref, eoff_ref, *refs = refs
     ring_in, refs = refs[: 2 * len(rings)], refs[2 * len(rings) :]
-    refs = refs[2 * len(hists) :]  # the histograms' inputs: read through their outputs
     floats, ints, *refs = refs
-    refs, hist_out = refs[: len(rings)], refs[len(rings) :]
     block, n_blocks = blocking(chunk)
 
     def entry(col: int) -> jax.Array:
@@ -402,16 +372,6 @@ def _kernel(
             pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
             ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))
 
-        hist_at = []
-        for i, bins in enumerate(hists):
-            at = Table.hist(packs, len(rings), i)
-            lo, hi, norm = (
-                jax.lax.bitcast_convert_type(table[:, c : c + 1], jnp.float32)
-                for c in (at + 1, at + 2, at + 3)
-            )
-            words = hist_out[2 * i : 2 * i + 2]
-            hist_at.append((bins, table[:, at : at + 1], lo, hi, norm, words))
-
         def second(on, bad, *rest):
             *_, x, p, acc = rest
             before, s1, s2, wsum = acc
@@ -436,12 +396,6 @@ def _kernel(
                 rows = jnp.broadcast_to(jnp.maximum(row, 0), x.shape)
                 plt.store(out.at[rows, slot, jnp.zeros_like(slot)], bits, mask=keep)
                 plt.store(out.at[rows, slot, jnp.ones_like(slot)], stamp, mask=keep)
-            for bins, row, lo, hi, norm, words in hist_at:
-                jax.lax.cond(
-                    row[0, 0] >= 0,
-                    functools.partial(_hist_add, bins, on, x, lo, hi, norm, row, *words, interpret),
-                    lambda: None,
-                )
             return before + row_sum(m), s1 + row_sum(e), s2 + row_sum(e * e), wsum
 
         def passes():
@@ -459,42 +413,6 @@ def _kernel(
         write(*jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty), total, nbad, csums)
 
     fold_chunk()
-
-
-HIST_SLOTS = 16
-"""Slots of a histogram counted at a time (`_hist_add`): a block's entries against 16
-slots are `[16, n]` compares, where all of a histogram's at once would spill."""
-
-
-def _hist_add(bins: int, on, x, lo, hi, norm, row, lo_ref, hi_ref, interpret: bool) -> None:
-    """Adds a block's masked-in entries (`on`, values `x`, `[1, n]`) per slot of row `row`
-    (`[1, 1]`) of a histogram of `bins` bins to its words (`lo_ref`, `hi_ref`, `[rows,
-    bins + 2]` uint32), with the carry into the high word: the slot as `_fold.hist_slot`
-    takes it, from the row's `lo`, `hi` and `norm`."""
-    t = jnp.floor((x - lo) * norm)
-    inner = jnp.clip(jnp.where(jnp.isnan(t), 0, t), 0, bins - 1).astype(jnp.int32) + 1
-    slot = jnp.where(x < lo, 0, jnp.where(x > hi, bins + 1, inner))
-    slot = jnp.where(on & ~jnp.isnan(x), slot, -1)
-    width = bins + 2
-    for first in range(0, width, HIST_SLOTS):
-        which = jax.lax.broadcasted_iota(jnp.int32, (HIST_SLOTS, 1), 0) + first
-        inc = jnp.sum((slot == which).astype(jnp.uint32), axis=1, keepdims=True)
-        there = (which < width) & (inc > 0)
-        # Slots left out are pointed past the row (Pallas' interpret mode writes them back).
-        at = (jnp.broadcast_to(row, which.shape), jnp.where(there, which, width))
-        if interpret:
-            old = plt.load(lo_ref.at[at], mask=there, other=0)
-            plt.store(lo_ref.at[at], old + inc, mask=there)
-        else:
-            old = plt.atomic_add(lo_ref, at, inc, mask=there)
-        # A carry where the low word wrapped: `old + inc` past 2^32 - 1.
-        carry = there & (inc > ~old)
-        one = jnp.ones_like(inc)
-        if interpret:
-            high = plt.load(hi_ref.at[at], mask=carry, other=0)
-            plt.store(hi_ref.at[at], high + one, mask=carry)
-        else:
-            plt.atomic_add(hi_ref, at, one, mask=carry)
 
 
 class Batch(NamedTuple):
@@ -524,15 +442,13 @@ def fold(
     rings: tuple[RingIn, ...] = (),
     interpret: bool = False,
     listed: bool | None = None,
-    hists: tuple[HistIn, ...] = (),
-) -> tuple[Batch, tuple[jax.Array, ...], tuple[tuple[jax.Array, jax.Array], ...]]:
+) -> tuple[Batch, tuple[jax.Array, ...]]:
     """Folds the rows `[R, B]` that `batch` selects (`Selected`; float32 values, bool
     mask, int32 non-finite flags): their statistics (`Batch`; `shift[R]` float32, and the
     sums of `counted[C, B]` (int32, C up to `packs` times R) as `packs` counted rows per
     batch row, `counted` row `p * R + r` in pack p of row r: read with the batch, where a
-    reduction of its own is one more kernel per step), each ring's data with its
-    rows' newest arrivals written in, stamped with the row's `steps[r]` (uint32), and
-    each histogram's words (low, high) with its rows' masked-in entries counted in.
+    reduction of its own is one more kernel per step), and each ring's data with its
+    rows' newest arrivals written in, stamped with the row's `steps[r]` (uint32).
 
     The EMA's weighted sum is `sum c(1-c)^after (x - off)` over the row's masked-in
     entries, with `after` how many masked-in entries follow each one; `off` is `ema_off`
@@ -558,9 +474,6 @@ def fold(
         table[-1] = np.full_like(at, -1)
     for r in rings:
         table += [np.stack([np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)], 1)]
-    for h in hists:
-        bounds = [np.asarray(b, np.float32).view(np.int32) for b in (h.lo, h.hi, h.norm)]
-        table += [np.stack([np.asarray(h.row, np.int32), *bounds], 1)]
     table = np.concatenate(table, axis=1).astype(np.int32)
     table = np.pad(table, ((0, 0), (0, pl.next_power_of_2(table.shape[1]) - table.shape[1])))
 
@@ -598,17 +511,12 @@ def fold(
     first_ring = len(args)
     for r in rings:
         args += [(r.data, whole(r.data)), (r.pos, whole(r.pos))]
-    first_hist = len(args)
-    for h in hists:
-        args += [(h.lo_words, whole(h.lo_words)), (h.hi_words, whole(h.hi_words))]
     n_int = pl.next_power_of_2(2 + packs)
     outs = [
         (jax.ShapeDtypeStruct((rows, 8 * n_chunks), jnp.float32), per_program(8)),
         (jax.ShapeDtypeStruct((rows, n_int * n_chunks), jnp.int32), per_program(n_int)),
     ]
     outs += [(jax.ShapeDtypeStruct(r.data.shape, r.data.dtype), whole(r.data)) for r in rings]
-    words = [w for h in hists for w in (h.lo_words, h.hi_words)]
-    outs += [(jax.ShapeDtypeStruct(w.shape, w.dtype), whole(w)) for w in words]
     kernel = functools.partial(
         _kernel,
         ema=ema is not None,
@@ -619,8 +527,6 @@ def fold(
         batch=width,
         grouped=batch.grouped,
         gather=gather,
-        hists=tuple(h.lo_words.shape[1] - 2 for h in hists),
-        interpret=interpret,
     )
     # A program of group rows mostly finds its chunk empty or nearly so: with fewer warps
     # more such programs run at once (docs/benchmarks.md, "Per-group statistics").
@@ -631,10 +537,7 @@ def fold(
         grid=(rows,) if n_chunks == 1 else (rows, n_chunks),
         in_specs=[s for _, s in args],
         out_specs=tuple(s for _, s in outs),
-        input_output_aliases={
-            **{first_ring + 2 * i: 2 + i for i in range(len(rings))},
-            **{first_hist + i: 2 + len(rings) + i for i in range(len(words))},
-        },
+        input_output_aliases={first_ring + 2 * i: 2 + i for i in range(len(rings))},
         interpret=interpret,
         compiler_params=None if interpret else plt.CompilerParams(num_warps=warps),
     )(*(a for a, _ in args))
@@ -652,5 +555,4 @@ def fold(
         floats[:, 5] if ema is not None else None,
         counted_sums,
     )
-    data, counted_words = data[: len(rings)], data[len(rings) :]
-    return stats, tuple(data), tuple(zip(counted_words[::2], counted_words[1::2]))
+    return stats, tuple(data)

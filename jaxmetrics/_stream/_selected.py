@@ -84,6 +84,24 @@ class Selected:
         kinds = np.asarray(kinds, np.int32)
         return jnp.take(ids, np.where(kinds < 0, self.ids.shape[0], kinds), axis=0)
 
+    def row_of(self) -> tuple[np.ndarray, jax.Array]:
+        """Per distinct (source, grouping) pair of the rows, in order: its source row
+        (`[P]`), and per entry the row it is masked in to (`[P, B]` int32; `rows`: none,
+        its group has no row here or the entry is not `ok`). The rows must be distinct
+        selections (a spec's are). Scattering each pair's entries into their rows reads
+        the batch once per pair, where the rows as arrays are rows x entries."""
+        pairs = sorted(set(zip(self.src, self.kind)))
+        width = max(self.group) + 1
+        # Per pair and group: the row (rows: none); an ungrouped pair's entries are group 0.
+        lut = np.full((len(pairs), width), self.rows, np.int32)
+        for r, (src, kind, group) in enumerate(zip(self.src, self.kind, self.group)):
+            lut[pairs.index((src, kind)), group if kind >= 0 else 0] = r
+        src, kind = (np.array(a, np.int32) for a in zip(*pairs))
+        gid = self.group_index(kind)
+        at = jnp.asarray(lut)[np.arange(len(pairs))[:, None], jnp.clip(gid, 0, width - 1)]
+        inside = (gid >= 0) & (gid < width) & jnp.take(self.ok, src, axis=0)
+        return src, jnp.where(inside, at, self.rows)
+
     def dense(self) -> tuple[jax.Array, jax.Array, jax.Array]:
         """The rows as arrays `[R, B]`: values, mask and int32 non-finite flags."""
         if not self.grouped:
