@@ -274,8 +274,18 @@ def batch_two_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None
     return k, bsum, bmin, bmax, mb + (pivot - shift), m2b, bad, ema_sum, counted_sums
 
 
+ONE_STAGE = 4096
+"""Entries up to which `batch_one_pass` reduces a row in one stage."""
+PART = 256
+"""Entries per part of a longer row (`batch_one_pass`)."""
+
+
 def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None):
-    """`_batch` as one variadic reduction (Chan's pairwise moments in its combiner)."""
+    """`_batch` as one variadic reduction (Chan's pairwise moments in its combiner). A row
+    past `ONE_STAGE` entries is reduced in two: its parts of `PART` entries, then their
+    partial statistics. XLA reduces a row of 16,384 entries in one program, which leaves
+    most of the GPU idle with ten rows (docs/benchmarks.md, "Scaling"); it splits rows of
+    24,576 and more itself, in parts of about the same size."""
     dt = values.dtype
     zero = jnp.zeros_like(values)
     operands = (
@@ -330,6 +340,16 @@ def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None
     # off the batch's mean afterwards saves one operand's pass but rounds Chan's
     # delta to the ulp of the mean, a variance bias of ~(ulp/sigma)^2 for data far from
     # zero (1e-4 relative at mean 1e6, std 1).
+    width = values.shape[1]
+    if width > ONE_STAGE:
+        # Each row in parts of `PART` entries, then the parts: the padding is each
+        # operand's identity (an empty part).
+        n = -(-width // PART)
+        operands = tuple(
+            jnp.pad(o, ((0, 0), (0, n * PART - width)), constant_values=i).reshape(rows, n, PART)
+            for o, i in zip(operands, inits)
+        )
+        operands = jax.lax.reduce(operands, inits, combine, (2,))
     out = jax.lax.reduce(operands, inits, combine, (1,))
     counted_sums = jnp.concatenate(out[e:]) if packs else jnp.zeros((0,), jnp.int32)
     return (*out[:7], out[7] if has_ema else None, counted_sums)

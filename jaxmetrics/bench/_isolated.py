@@ -134,7 +134,7 @@ def isolated(
     return [t, _kernel_table(num_envs, steps, {k: (by_name[k], infos[k]) for k in PROFILED})]
 
 
-PROFILED = ("floor", "full")
+PROFILED = ("floor", "simple", "full")
 
 
 def _kernel_table(num_envs: int, steps: int, profiled: dict, name: str = "kernels") -> Table:

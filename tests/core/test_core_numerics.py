@@ -154,6 +154,45 @@ def test_one_pass_and_two_pass_batch_moments_agree():
         assert float(one[5][1]) == 0.0 == float(two[5][1])
 
 
+@pytest.mark.parametrize("width", [4096, 5000, 16384])
+def test_one_pass_batch_reduces_long_rows_in_parts(width):
+    # Past 4,096 entries the one reduction takes each row in parts of 256 entries (the
+    # last padded with empty entries at 5,000), then the parts; against float64 numpy:
+    # counts, min, max and sums of ints exact, the moments to float32 rounding.
+    from jaxmetrics import _stream
+
+    rng = np.random.default_rng(width)
+    v = (1e4 + rng.standard_normal((4, width))).astype(np.float32)
+    v[1] = 5.0  # constant: no spread at all
+    m = rng.random((4, width)) < rng.choice([0.01, 0.3, 1.0], (4, 1))
+    m[3] = False  # nothing arrives
+    nf = rng.integers(0, 2, (4, width)).astype(np.int32)
+    ema_in = rng.random((4, width)).astype(np.float32)
+    counted = rng.integers(0, 3, (8, width)).astype(np.int32)
+    shift = np.array([1e4, 0.0, 1e4 + 0.5, 0.0], np.float32)
+    args = [jnp.asarray(a) for a in (v, m, nf, shift)]
+    one = jax.jit(_stream.batch_one_pass, static_argnums=4)(
+        *args, jnp.float32, jnp.asarray(ema_in), jnp.asarray(counted)
+    )
+    k, bsum, bmin, bmax, mean_dev, m2, bad, ema_sum, counted_sums = one
+    np.testing.assert_array_equal(k, m.sum(axis=1))
+    np.testing.assert_array_equal(bad, nf.sum(axis=1))
+    np.testing.assert_array_equal(counted_sums, counted.sum(axis=1))
+    np.testing.assert_allclose(ema_sum, ema_in.astype(np.float64).sum(axis=1), rtol=1e-5)
+    for r in range(4):
+        x = v[r, m[r]].astype(np.float64)
+        assert (bmin[r], bmax[r]) == (x.min(initial=np.inf), x.max(initial=-np.inf))
+        np.testing.assert_allclose(bsum[r], x.sum(), rtol=1e-6)
+        d = x - float(shift[r])
+        want = d.mean() if len(x) else 0.0
+        # Deviations from a shift near the values are exact (Sterbenz); unshifted, the
+        # mean of values near 1e4 is good to a few of their ulp (1e-3).
+        atol = 5e-3 if shift[r] == 0 else 1e-6
+        np.testing.assert_allclose(mean_dev[r], want, rtol=1e-6, atol=atol)
+        np.testing.assert_allclose(m2[r], ((x - x.mean()) ** 2).sum() if len(x) else 0, rtol=1e-4)
+    assert float(m2[1]) == 0.0
+
+
 # ------------------------------------------------- the period mean at every arrival pattern
 
 _MOMENTS = jm.Metrics(logged={"x": jm.Logged(stats=("mean", "std", "count"))})
