@@ -506,16 +506,17 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
         ema = None
         if plan.ema_rows:
             ema = _kernel.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off)
-        stats, data = _kernel.fold(
-            batch, shift, s.steps, counted, packs, ema, tuple(rings), interpret
+        hists = tuple(
+            _kernel.HistIn(_hist_counted_selected(g, z, batch, plan.dtype), h.lo, h.hi)
+            for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
+        )
+        stats, data, hists = _kernel.fold(
+            batch, shift, s.steps, counted, packs, ema, tuple(rings), interpret, hists=hists
         )
         data = iter(data)
         ema_data = tuple(next(data) if r.size else r.data for r in s.ema_rings)
-        hists = _pairs(
-            _hist_add_selected(g, h, z, batch, plan.dtype)
-            for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
-        )
-        return stats, ema_data, tuple(data), *hists
+        counts = tuple(Count(h.hi, h.lo) for h in hists)
+        return stats, ema_data, tuple(data), counts, tuple(h.counted for h in hists)
 
     def reference(s, batch, shift, counted):
         return _fold_dense(plan, s, batch, shift, counted)
@@ -553,19 +554,21 @@ def _hist_slot(bins: int, values, mask, lo, hi) -> jax.Array:
     return jnp.where(mask & ~jnp.isnan(values), slot, bins + 2)
 
 
-def _hist_add_selected(g: HistGroup, h: Count, zero: jax.Array, batch: Selected, dt):
-    """`_hist_add` of the histogram's rows that `batch` selects (`g.rows`), on a CUDA GPU:
-    each entry of a source row scattered once per grouping into the row of its group
-    (`Selected.row_of`), where the rows as arrays would be a masked copy of the source
-    per group, each scattered whole."""
+def _hist_counted_selected(g: HistGroup, zero: jax.Array, batch: Selected, dt) -> jax.Array:
+    """The step's counts of the histogram's rows that `batch` selects (`g.rows`) scattered
+    into `zero` (`hist_steps`), on a CUDA GPU: each entry of a source row scattered once
+    per grouping into the row of its group (`Selected.row_of`), where the rows as arrays
+    would be a masked copy of the source per group, each scattered whole. The kernel adds
+    them to the counts (`_kernel.HistIn`)."""
     sel = batch.take(g.rows)
     if not sel.grouped:
-        return _hist_add(g, h, zero, *sel.dense()[:2], dt)
+        values, mask = sel.dense()[:2]
+        lo, hi = (jnp.asarray(b, dt)[:, None] for b in (g.lo, g.hi))
+        return slot_counts_scatter(_hist_slot(g.bins, values, mask, lo, hi), zero)
     src, row = sel.row_of()
     lo, hi = (jnp.asarray((*bound, 0.0), dt)[row] for bound in (g.lo, g.hi))
     values = jnp.take(sel.values, src, axis=0)
-    inc = zero.at[row, _hist_slot(g.bins, values, row < sel.rows, lo, hi)].add(1, mode="drop")
-    return _count.add(h, inc), jnp.where(inc < 0, inc, 0)
+    return zero.at[row, _hist_slot(g.bins, values, row < sel.rows, lo, hi)].add(1, mode="drop")
 
 
 def _hist_add(g: HistGroup, h: Count, zero: jax.Array, values, mask, dt):

@@ -69,6 +69,16 @@ class RingIn(NamedTuple):
     pos_row: np.ndarray
 
 
+class HistIn(NamedTuple):
+    """A histogram's counts (`_stream.HistGroup`: the low and high words, `[rows, bins +
+    2]` uint32) and the step's counts scattered into its zero array (`hist_steps`,
+    int32)."""
+
+    counted: jax.Array
+    lo: jax.Array
+    hi: jax.Array
+
+
 class Table:
     """The columns of a batch row's static ints (`fold`'s `table`, `[R, n]` int32): the
     EMA coefficient's float32 bits, the row's source row, grouping (-1: none) and group
@@ -119,6 +129,7 @@ def _kernel(
     batch: int,
     grouped: bool,
     gather: int = 0,
+    hists: int = 0,
 ):
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
     sizes, `packs` the counted rows per batch row (`counted`: read from a counted input;
@@ -145,7 +156,11 @@ def _kernel(
     or from `counts`), and its EMA weights and ring slots follow from those global ranks
     and the row's count. Its mean deviation is also written off a pivot that every chunk
     of the row shares (the row's first value), so that the chunks' means combine without
-    the rounding of means far from zero."""
+    the rounding of means far from zero.
+
+    The first program also adds the step's counts of each of `hists` histograms to its
+    words, with the carry, and zeroes them (`HistIn`): XLA's scatter counts them, and their
+    add would be a kernel of its own."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
@@ -161,7 +176,9 @@ def _kernel(
     if ema:
         w_ref, eoff_ref, *refs = refs
     ring_in, refs = refs[: 2 * len(rings)], refs[2 * len(rings) :]
+    hist_in, refs = refs[: 3 * hists], refs[3 * hists :]
     floats, ints, *refs = refs
+    refs, hist_out = refs[: len(rings)], refs[len(rings) :]
     block, n_blocks = blocking(chunk)
 
     def entry(col: int) -> jax.Array:
@@ -413,6 +430,31 @@ def _kernel(
         write(*jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty), total, nbad, csums)
 
     fold_chunk()
+    if hists:
+        first = (pl.program_id(0) == 0) & (chunk_id == 0)
+        jax.lax.cond(first, lambda: _hists_add(hist_in, hist_out), lambda: None)
+
+
+def _hists_add(hist_in, hist_out) -> None:
+    """Each histogram's step counts added to its words with the carry (`_count.add`),
+    and zeroed (`HistIn`; inputs and outputs in that order, three per histogram)."""
+    for i in range(0, len(hist_in), 3):
+        counted, lo, hi = hist_in[i : i + 3]
+        rows, slots = counted.shape
+        r = jax.lax.broadcasted_iota(jnp.int32, (pl.next_power_of_2(rows), 1), 0)
+        c = jax.lax.broadcasted_iota(jnp.int32, (1, pl.next_power_of_2(slots)), 1)
+        there = (r < rows) & (c < slots)
+        # Entries left out are pointed past the rows (Pallas' interpret mode writes them
+        # back).
+        at = (jnp.where(there, r, rows), jnp.where(there, c, 0))
+        inc = plt.load(counted.at[at], mask=there, other=0).astype(jnp.uint32)
+        low = plt.load(lo.at[at], mask=there, other=0)
+        high = plt.load(hi.at[at], mask=there, other=0)
+        carry = (inc > ~low).astype(jnp.uint32)
+        out_counted, out_lo, out_hi = hist_out[i : i + 3]
+        plt.store(out_lo.at[at], low + inc, mask=there)
+        plt.store(out_hi.at[at], high + carry, mask=there)
+        plt.store(out_counted.at[at], jnp.zeros_like(inc, counted.dtype), mask=there)
 
 
 class Batch(NamedTuple):
@@ -442,13 +484,15 @@ def fold(
     rings: tuple[RingIn, ...] = (),
     interpret: bool = False,
     listed: bool | None = None,
-) -> tuple[Batch, tuple[jax.Array, ...]]:
+    hists: tuple[HistIn, ...] = (),
+) -> tuple[Batch, tuple[jax.Array, ...], tuple[HistIn, ...]]:
     """Folds the rows `[R, B]` that `batch` selects (`Selected`; float32 values, bool
     mask, int32 non-finite flags): their statistics (`Batch`; `shift[R]` float32, and the
     sums of `counted[C, B]` (int32, C up to `packs` times R) as `packs` counted rows per
     batch row, `counted` row `p * R + r` in pack p of row r: read with the batch, where a
     reduction of its own is one more kernel per step), and each ring's data with its
-    rows' newest arrivals written in, stamped with the row's `steps[r]` (uint32).
+    rows' newest arrivals written in, stamped with the row's `steps[r]` (uint32); and
+    each histogram (`HistIn`) with its step's counts added and zeroed.
 
     The EMA's weighted sum is `sum c(1-c)^after (x - off)` over the row's masked-in
     entries, with `after` how many masked-in entries follow each one; `off` is `ema_off`
@@ -511,12 +555,16 @@ def fold(
     first_ring = len(args)
     for r in rings:
         args += [(r.data, whole(r.data)), (r.pos, whole(r.pos))]
+    first_hist = len(args)
+    words = [a for h in hists for a in h]
+    args += [(a, whole(a)) for a in words]
     n_int = pl.next_power_of_2(2 + packs)
     outs = [
         (jax.ShapeDtypeStruct((rows, 8 * n_chunks), jnp.float32), per_program(8)),
         (jax.ShapeDtypeStruct((rows, n_int * n_chunks), jnp.int32), per_program(n_int)),
     ]
     outs += [(jax.ShapeDtypeStruct(r.data.shape, r.data.dtype), whole(r.data)) for r in rings]
+    outs += [(jax.ShapeDtypeStruct(a.shape, a.dtype), whole(a)) for a in words]
     kernel = functools.partial(
         _kernel,
         ema=ema is not None,
@@ -527,6 +575,7 @@ def fold(
         batch=width,
         grouped=batch.grouped,
         gather=gather,
+        hists=len(hists),
     )
     # A program of group rows mostly finds its chunk empty or nearly so: with fewer warps
     # more such programs run at once (docs/benchmarks.md, "Per-group statistics").
@@ -537,7 +586,10 @@ def fold(
         grid=(rows,) if n_chunks == 1 else (rows, n_chunks),
         in_specs=[s for _, s in args],
         out_specs=tuple(s for _, s in outs),
-        input_output_aliases={first_ring + 2 * i: 2 + i for i in range(len(rings))},
+        input_output_aliases={
+            **{first_ring + 2 * i: 2 + i for i in range(len(rings))},
+            **{first_hist + i: 2 + len(rings) + i for i in range(len(words))},
+        },
         interpret=interpret,
         compiler_params=None if interpret else plt.CompilerParams(num_warps=warps),
     )(*(a for a, _ in args))
@@ -555,4 +607,5 @@ def fold(
         floats[:, 5] if ema is not None else None,
         counted_sums,
     )
-    return stats, tuple(data)
+    data, words = data[: len(rings)], data[len(rings) :]
+    return stats, tuple(data), tuple(HistIn(*words[i : i + 3]) for i in range(0, len(words), 3))

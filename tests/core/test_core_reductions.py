@@ -651,7 +651,7 @@ def check_fused_kernel(
         return _kernel.fold(selected, sh, t, ta, packs, ema, rings, True, listed)
 
     args = (ok, x, flags_in, ids, steps, counted, ema_w, ema_off, shift, data, pos)
-    stats, rings = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
+    stats, rings, _ = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
     want_counted = np.zeros(rows * packs, np.int64)
     want_counted[: counted.shape[0]] = counted.sum(axis=1)
     np.testing.assert_array_equal(stats.counted_sums, want_counted)
@@ -716,6 +716,61 @@ def test_fused_kernel_serves_float32_batches_of_32_to_65536(monkeypatch, num_env
     assert ("pallas_call" in str(jaxpr)) == fused
 
 
+@pytest.mark.parametrize(("num_envs", "groups"), [(300, 0), (4097, 0), (300, 2)])
+def test_fused_kernel_carries_histogram_counts_into_the_high_word(monkeypatch, num_envs, groups):
+    # A histogram's counts are two uint32 words: the kernel adds a step's counts to the
+    # low words and carries into the high word where one wraps. From low words 2 below
+    # 2^32, the counts after two steps against numpy's histogram of the finite values in
+    # float64, as 64-bit integers; and the state as the jnp path leaves it.
+    from jaxmetrics import _stream
+
+    edges = np.linspace(-1.0, 1.0, 6)
+    # With an EMA, which the kernel folds (a histogram alone takes XLA's kernels).
+    stats = (jm.histogram(5, (-1.0, 1.0)), jm.ema(0.1))
+    term = jm.Term(lambda x: x[0], reduce="last", stats=stats)
+    grouping = jm.groups(lambda x: x[1], ("a", "b")) if groups else None
+    metrics = jm.Metrics(terms={"a": term}, groups=grouping)
+    rng = np.random.default_rng(3)
+    xs = rng.normal(size=(2, num_envs)).astype(np.float32)
+    xs[0, :3] = np.inf, -np.inf, np.nan
+    gs = rng.integers(0, 2, (2, num_envs)).astype(np.int32)
+    near = 2**32 - 2
+
+    def start():
+        def wrap(path, leaf):
+            key = jax.tree_util.keystr(path)
+            return jnp.full_like(leaf, near) if "hists" in key and key.endswith(".lo") else leaf
+
+        return jax.tree_util.tree_map_with_path(wrap, metrics.init(num_envs))
+
+    def run():
+        done = jnp.ones(num_envs, bool)
+        step = jax.jit(metrics.update)
+        s = step(start(), (jnp.asarray(xs[0]), jnp.asarray(gs[0])), done)
+        return step(s, (jnp.asarray(xs[1]), jnp.asarray(gs[1])), done)
+
+    plain = run()
+    fold = _stream.add_with_counts
+    monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
+    fused = run()
+    for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(plain), jax.tree.leaves(fused)):
+        if not jnp.issubdtype(a.dtype, jnp.floating):
+            np.testing.assert_array_equal(a, b, err_msg=jax.tree_util.keystr(path))
+    words = {
+        jax.tree_util.keystr(k).rsplit(".", 1)[1]: np.asarray(v, np.uint64)
+        for k, v in jax.tree_util.tree_leaves_with_path(fused)
+        if "hists" in jax.tree_util.keystr(k)
+    }
+    # Non-finite values are counted apart (`nonfinite`), in no slot.
+    finite = xs[np.isfinite(xs)].astype(np.float64)
+    want = np.r_[np.sum(finite < -1), np.histogram(finite, edges)[0], np.sum(finite > 1)]
+    total = (words["hi"] * 2**32 + words["lo"]).reshape(-1, 7)  # 1 + groups rows
+    np.testing.assert_array_equal(total[0], near + want.astype(np.uint64))
+    if groups:
+        np.testing.assert_array_equal(total[1:].sum(axis=0), 2 * near + want.astype(np.uint64))
+    assert total[0].max() > 2**32
+
+
 @pytest.mark.parametrize(
     ("num_envs", "steps", "groups", "ranked", "listed"),
     [(64, 30, 0, True, False), (300, 10, 0, True, False), (3000, 10, 0, True, False)]
@@ -728,7 +783,7 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
 ):
     # The whole update with the kernel (interpret mode) against the jnp path that CPUs and
     # sharded states take, over a rollout with episodes ending, non-finite values, two
-    # EMAs, two window sizes and a histogram: every count, ring slot and histogram bin
+    # EMAs, two window sizes and two histograms: every count, ring slot and histogram bin
     # of the state equal, every reported number to float32 rounding (the batch's sums
     # are taken in another order). Batches of one block, of two, and of several chunks;
     # with `groups`, each metric also per group (indices out of range included), its
@@ -744,7 +799,7 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
         "a": ("mean", jm.ema(0.05), jm.window(7)),
         "b": ("std", jm.ema(0.5), jm.window(3, percentiles=(50,))),
         "c": ("max", jm.histogram(5, (-1.0, 1.0)), jm.window(7)),
-        "d": ("min",),
+        "d": ("min", jm.histogram(40, (-2.0, 2.0))),
     }
     if not ranked:
         stats = {"a": ("mean", "sum"), "b": ("std", "min"), "c": ("max",), "d": ("min",)}
