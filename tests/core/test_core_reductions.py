@@ -776,7 +776,7 @@ def test_fused_kernel_carries_histogram_counts_into_the_high_word(monkeypatch, n
     [(64, 30, 0, True, False), (300, 10, 0, True, False), (3000, 10, 0, True, False)]
     + [(4097, 10, 0, True, False), (12288, 10, 0, True, False), (300, 10, 3, True, False)]
     + [(4097, 10, 3, True, False), (300, 10, 3, False, False), (4097, 10, 3, False, False)]
-    + [(300, 10, 3, True, True), (4097, 10, 3, False, True)],
+    + [(300, 10, 3, True, True), (4097, 10, 3, False, True), (4097, 10, 0, True, True)],
 )
 def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     monkeypatch, num_envs, steps, groups, ranked, listed
@@ -788,8 +788,9 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     # are taken in another order). Batches of one block, of two, and of several chunks;
     # with `groups`, each metric also per group (indices out of range included), its
     # group rows read by the kernel from the ungrouped batch; not `ranked`: the period
-    # statistics only, which the kernel folds for group rows; `listed`: the group rows
-    # read from the lists of reached entries (`_reached`), else from the batch.
+    # statistics only, which the kernel folds for group rows; `listed`: the rows read
+    # from the lists of reached entries (`_reached`, with group rows or past 32,768
+    # envs without), else from the batch.
     from jaxmetrics import _stream
     from jaxmetrics._stream import _reached
 
