@@ -158,9 +158,9 @@ def _kernel(
     of the row shares (the row's first value), so that the chunks' means combine without
     the rounding of means far from zero.
 
-    The first program also adds the step's counts of each of `hists` histograms to its
-    words, with the carry, and zeroes them (`HistIn`): XLA's scatter counts them, and their
-    add would be a kernel of its own."""
+    The first chunk of row i also adds the step's counts of row i of each of `hists`
+    histograms (as it has rows) to its words, with the carry, and zeroes them (`HistIn`):
+    XLA's scatter counts them, and their add would be a kernel of its own."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
@@ -431,22 +431,23 @@ def _kernel(
 
     fold_chunk()
     if hists:
-        first = (pl.program_id(0) == 0) & (chunk_id == 0)
-        jax.lax.cond(first, lambda: _hists_add(hist_in, hist_out), lambda: None)
+        row = pl.program_id(0)
+        jax.lax.cond(chunk_id == 0, lambda: _hists_add(row, hist_in, hist_out), lambda: None)
 
 
-def _hists_add(hist_in, hist_out) -> None:
-    """Each histogram's step counts added to its words with the carry (`_count.add`),
-    and zeroed (`HistIn`; inputs and outputs in that order, three per histogram)."""
+def _hists_add(row, hist_in, hist_out) -> None:
+    """Row `row` of each histogram (where it has one): its step counts added to its words
+    with the carry (`_count.add`), and zeroed (`HistIn`; inputs and outputs in that
+    order, three per histogram). A histogram's rows are some of the batch's, so the
+    batch's programs cover them, each a row."""
     for i in range(0, len(hist_in), 3):
         counted, lo, hi = hist_in[i : i + 3]
         rows, slots = counted.shape
-        r = jax.lax.broadcasted_iota(jnp.int32, (pl.next_power_of_2(rows), 1), 0)
         c = jax.lax.broadcasted_iota(jnp.int32, (1, pl.next_power_of_2(slots)), 1)
-        there = (r < rows) & (c < slots)
-        # Entries left out are pointed past the rows (Pallas' interpret mode writes them
+        there = (c < slots) & (row < rows)
+        # Entries left out are pointed past the row (Pallas' interpret mode writes them
         # back).
-        at = (jnp.where(there, r, rows), jnp.where(there, c, 0))
+        at = (jnp.broadcast_to(jnp.minimum(row, rows - 1), c.shape), jnp.where(there, c, slots))
         inc = plt.load(counted.at[at], mask=there, other=0).astype(jnp.uint32)
         low = plt.load(lo.at[at], mask=there, other=0)
         high = plt.load(hi.at[at], mask=there, other=0)
