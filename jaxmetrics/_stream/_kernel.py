@@ -432,7 +432,11 @@ def _kernel(
     fold_chunk()
     if hists:
         row = pl.program_id(0)
-        jax.lax.cond(chunk_id == 0, lambda: _hists_add(row, hist_in, hist_out), lambda: None)
+        add = functools.partial(_hists_add, row, hist_in, hist_out)
+        if n_chunks == 1:
+            add()
+        else:
+            jax.lax.cond(chunk_id == 0, add, lambda: None)
 
 
 def _hists_add(row, hist_in, hist_out) -> None:
