@@ -79,7 +79,8 @@ def isolated(
     num_envs: int, steps: int, repeats: int, hlo_dir: str | None = None, profile: bool = False
 ) -> list[Table]:
     """Scenario 1: `update` of the 10-term spec under a scan, against the floor; with
-    `profile`, also the device time of each kernel of the floor and the full spec."""
+    `profile`, also the device time of each kernel of the floor, the simple-statistics
+    spec and the full spec."""
     t = Table(
         "isolated",
         f"Isolated update: {num_envs} envs x 10 terms, {steps}-step scan of random inputs",

@@ -241,7 +241,7 @@ def test_kernel_profile_names_the_ops_of_each_variant(result):
     k = doc["scenarios"]["kernels"]
     col = {c: i for i, c in enumerate(k["columns"])}
     rows = k["rows"]
-    assert {r[col["variant"]] for r in rows} == {"floor", "full"}
+    assert {r[col["variant"]] for r in rows} == {"floor", "simple", "full"}
     for r in rows:
         # Each profiled event is an op of the compiled program, found in its HLO.
         assert r[col["shape"]] and r[col["fuses"]], r
