@@ -83,10 +83,11 @@ def per_chunk(marks: jax.Array, chunk: int) -> jax.Array:
     """Each row of `marks` (`[R, B]` int32) summed over each chunk of `chunk` entries
     (`[R, n]` int32, zero-padded to a power of two `n`)."""
     rows, width = marks.shape
-    n = -(-width // chunk)
+    # The marks padded to a power of two of chunks, not the counts: XLA pads an input in
+    # the reduction's kernel, an output in a kernel of its own.
+    n = pl.next_power_of_2(-(-width // chunk))
     padded = jnp.pad(marks, ((0, 0), (0, n * chunk - width)))
-    counts = jnp.sum(padded.reshape(rows, n, chunk), axis=2, dtype=jnp.int32)
-    return jnp.pad(counts, ((0, 0), (0, pl.next_power_of_2(n) - n)))
+    return jnp.sum(padded.reshape(rows, n, chunk), axis=2, dtype=jnp.int32)
 
 
 def counted_input(counted: jax.Array, sources: int) -> jax.Array:
