@@ -1,5 +1,5 @@
 """A batch's fold in one GPU kernel (Pallas, Triton): its statistics, arrival ranks, the
-EMA's weighted sum and the ring writes.
+EMA's weighted sum, the ring writes and the histograms' step counts added.
 
 `_stream.add` needs, per row of a batch `[R, B]`: the count, sum, min, max and moments of the
 row's masked-in values, its non-finite flags and counted_sums summed, how many masked-in entries
@@ -9,8 +9,10 @@ batch's reduction, the mask packed into words, the later words' counts, the weig
 deviations, the ring scatter). One Triton program per row does it all: the row is loaded
 once (in one or two blocks), a cumulative sum of its mask gives the ranks, the reductions
 and the weighted sum follow, and the ring slots are written in place (the rings are
-aliased to the outputs; other rows never touch a row's slots). With the full spec a step
-then takes 6 kernels where XLA's path takes 10 (docs/benchmarks.md has the times).
+aliased to the outputs; other rows never touch a row's slots). The histograms' counts of
+the step, which XLA scatters, are added to their exact counts here too, where the add was
+a kernel of its own. With the full spec a step then takes 5 kernels where XLA's path takes
+11 (docs/benchmarks.md has the times).
 
 A group row (`_stream.Selected`) is read from its metric's row of the batch and the group
 index, its mask built as it is loaded; the batch is not copied per group. Where `fold`
