@@ -11,8 +11,8 @@ once (in one or two blocks), a cumulative sum of its mask gives the ranks, the r
 and the weighted sum follow, and the ring slots are written in place (the rings are
 aliased to the outputs; other rows never touch a row's slots). The histograms' counts of
 the step, which XLA scatters, are added to their exact counts here too, where the add was
-a kernel of its own. With the full spec a step then takes 5 kernels where XLA's path takes
-11 (docs/benchmarks.md has the times).
+a kernel of its own. With the full spec a step then takes 5 kernels, as many as the
+hand-written floor's (docs/benchmarks.md has them and their times).
 
 A group row (`_stream.Selected`) is read from its metric's row of the batch and the group
 index, its mask built as it is loaded; the batch is not copied per group. Where `fold`
