@@ -29,8 +29,8 @@ from ._fold import arrivals_after as arrivals_after
 from ._fold import batch_one_pass as batch_one_pass
 from ._fold import batch_two_pass as batch_two_pass
 from ._fold import counts_width as counts_width
-from ._fold import slot_counts_compare as slot_counts_compare
-from ._fold import slot_counts_scatter as slot_counts_scatter
+from ._hists import slot_counts_compare as slot_counts_compare
+from ._hists import slot_counts_scatter as slot_counts_scatter
 from ._merge import combine as combine
 from ._merge import merge as merge
 from ._merge import pad_ema_history as pad_ema_history

@@ -17,12 +17,11 @@ from .. import _count, _sketch
 from .._count import Count
 from .._numerics import kahan_add
 from .._sharding import gathered
-from . import _kernel, _segments
+from . import _hists, _kernel, _segments
 from ._segments import SegmentPlan
 from ._selected import Selected
 from ._state import (
     INT32_MAX,
-    HistGroup,
     Ring,
     StreamPlan,
     StreamState,
@@ -476,7 +475,7 @@ def _fold(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, coun
 def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
     """Each histogram's counts with the batch added, and its `hist_steps`."""
     return _pairs(
-        _hist_add(g, h, z, take_rows(g.rows, values), take_rows(g.rows, mask), plan.dtype)
+        _hists.add(g, h, z, take_rows(g.rows, values), take_rows(g.rows, mask), plan.dtype)
         for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
     )
 
@@ -507,7 +506,7 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
         if plan.ema_rows:
             ema = _kernel.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off)
         hists = tuple(
-            _kernel.HistIn(_hist_counted_selected(g, z, batch, plan.dtype), h.lo, h.hi)
+            _hists.HistIn(_hists.counted_selected(g, z, batch, plan.dtype), h.lo, h.hi)
             for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
         )
         stats, data, hists = _kernel.fold(
@@ -530,64 +529,6 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
 def _pairs(items) -> tuple[tuple, tuple]:
     pairs = tuple(items)
     return tuple(a for a, _ in pairs), tuple(b for _, b in pairs)
-
-
-def slot_counts_scatter(slot: jax.Array, into: jax.Array) -> jax.Array:
-    """`into[R, nslots]` (int32) plus, per row, how many entries of `slot[R, B]` equal each
-    of 0..nslots-1 (others ignored)."""
-    rows = jnp.broadcast_to(jnp.arange(slot.shape[0], dtype=jnp.int32)[:, None], slot.shape)
-    return into.at[rows, slot].add(1, mode="drop")
-
-
-def slot_counts_compare(slot: jax.Array, into: jax.Array) -> jax.Array:
-    """Same as `slot_counts_scatter`, as one compare-and-sum reduction."""
-    bins = jnp.arange(into.shape[1], dtype=jnp.int32)[None, :, None]
-    return into + jnp.sum(slot[:, None, :] == bins, axis=2, dtype=jnp.int32)
-
-
-def _hist_slot(bins: int, values, mask, lo, hi) -> jax.Array:
-    """Each value's histogram slot (0: under `lo`, `bins + 1`: over `hi`), or `bins + 2`
-    (no slot) where not `mask` or NaN."""
-    t = jnp.floor((values - lo) / (hi - lo) * bins)
-    inner = jnp.clip(jnp.nan_to_num(t), 0, bins - 1).astype(jnp.int32) + 1
-    slot = jnp.where(values < lo, 0, jnp.where(values > hi, bins + 1, inner))
-    return jnp.where(mask & ~jnp.isnan(values), slot, bins + 2)
-
-
-def _hist_counted_selected(g: HistGroup, zero: jax.Array, batch: Selected, dt) -> jax.Array:
-    """The step's counts of the histogram's rows that `batch` selects (`g.rows`) scattered
-    into `zero` (`hist_steps`), on a CUDA GPU: each entry of a source row scattered once
-    per grouping into the row of its group (`Selected.row_of`), where the rows as arrays
-    would be a masked copy of the source per group, each scattered whole. The kernel adds
-    them to the counts (`_kernel.HistIn`)."""
-    sel = batch.take(g.rows)
-    if not sel.grouped:
-        values, mask = sel.dense()[:2]
-        lo, hi = (jnp.asarray(b, dt)[:, None] for b in (g.lo, g.hi))
-        return slot_counts_scatter(_hist_slot(g.bins, values, mask, lo, hi), zero)
-    src, row = sel.row_of()
-    lo, hi = (jnp.asarray((*bound, 0.0), dt)[row] for bound in (g.lo, g.hi))
-    values = jnp.take(sel.values, src, axis=0)
-    return zero.at[row, _hist_slot(g.bins, values, row < sel.rows, lo, hi)].add(1, mode="drop")
-
-
-def _hist_add(g: HistGroup, h: Count, zero: jax.Array, values, mask, dt):
-    """`h` with the batch counted in, and `zero` (`hist_steps`) as it was."""
-    lo = jnp.asarray(g.lo, dt)[:, None]
-    hi = jnp.asarray(g.hi, dt)[:, None]
-    slot = _hist_slot(g.bins, values, mask, lo, hi)
-    # A scatter-add into `zero` in place: cheaper than compare-and-count on CPU and CUDA
-    # (XLA does not fuse the compare into the reduction). TPUs scatter slowly: there,
-    # compare and count.
-    inc = jax.lax.platform_dependent(
-        slot,
-        zero,
-        cpu=slot_counts_scatter,
-        cuda=slot_counts_scatter,
-        default=slot_counts_compare,
-    )
-    # The zeros read through `inc` (see the module docstring).
-    return _count.add(h, inc), jnp.where(inc < 0, inc, 0)
 
 
 def period_mean(total: jax.Array, total_c: jax.Array, n: jax.Array, chan: jax.Array) -> jax.Array:

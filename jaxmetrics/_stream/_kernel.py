@@ -40,6 +40,7 @@ from jax.experimental.pallas import triton as plt
 
 from . import _reached
 from ._chunks import chunk_counts, chunking, combine, counted_input, reads_counts
+from ._hists import HistIn, add_in_kernel
 from ._selected import Selected
 
 MIN_BATCH = 32
@@ -69,16 +70,6 @@ class RingIn(NamedTuple):
     pos: jax.Array
     row: np.ndarray
     pos_row: np.ndarray
-
-
-class HistIn(NamedTuple):
-    """A histogram's counts (`_stream.HistGroup`: the low and high words, `[rows, bins +
-    2]` uint32) and the step's counts scattered into its zero array (`hist_steps`,
-    int32)."""
-
-    counted: jax.Array
-    lo: jax.Array
-    hi: jax.Array
 
 
 class Table:
@@ -434,34 +425,11 @@ def _kernel(
     fold_chunk()
     if hists:
         row = pl.program_id(0)
-        add = functools.partial(_hists_add, row, hist_in, hist_out)
+        add = functools.partial(add_in_kernel, row, hist_in, hist_out)
         if n_chunks == 1:
             add()
         else:
             jax.lax.cond(chunk_id == 0, add, lambda: None)
-
-
-def _hists_add(row, hist_in, hist_out) -> None:
-    """Row `row` of each histogram (where it has one): its step counts added to its words
-    with the carry (`_count.add`), and zeroed (`HistIn`; inputs and outputs in that
-    order, three per histogram). A histogram's rows are some of the batch's, so the
-    batch's programs cover them, each a row."""
-    for i in range(0, len(hist_in), 3):
-        counted, lo, hi = hist_in[i : i + 3]
-        rows, slots = counted.shape
-        c = jax.lax.broadcasted_iota(jnp.int32, (1, pl.next_power_of_2(slots)), 1)
-        there = (c < slots) & (row < rows)
-        # Entries left out are pointed past the row (Pallas' interpret mode writes them
-        # back).
-        at = (jnp.broadcast_to(jnp.minimum(row, rows - 1), c.shape), jnp.where(there, c, slots))
-        inc = plt.load(counted.at[at], mask=there, other=0).astype(jnp.uint32)
-        low = plt.load(lo.at[at], mask=there, other=0)
-        high = plt.load(hi.at[at], mask=there, other=0)
-        carry = (inc > ~low).astype(jnp.uint32)
-        out_counted, out_lo, out_hi = hist_out[i : i + 3]
-        plt.store(out_lo.at[at], low + inc, mask=there)
-        plt.store(out_hi.at[at], high + carry, mask=there)
-        plt.store(out_counted.at[at], jnp.zeros_like(inc, counted.dtype), mask=there)
 
 
 class Batch(NamedTuple):

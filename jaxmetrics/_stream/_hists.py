@@ -1,0 +1,113 @@
+"""A batch counted into the histograms: each value's slot, the step's counts scattered
+into the state's zero array (`hist_steps`), and their add to the exact counts, by XLA
+(`add`) or, on a CUDA GPU, inside the fused kernel (`HistIn`, `add_in_kernel`).
+
+The step's counts are scattered in place into `hist_steps`, which the add writes back as
+zeros: a scatter into a fresh zero array costs one more kernel per step, the fill.
+"""
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plt
+
+from .. import _count
+from .._count import Count
+from ._selected import Selected
+from ._state import HistGroup
+
+
+def slot_counts_scatter(slot: jax.Array, into: jax.Array) -> jax.Array:
+    """`into[R, nslots]` (int32) plus, per row, how many entries of `slot[R, B]` equal each
+    of 0..nslots-1 (others ignored)."""
+    rows = jnp.broadcast_to(jnp.arange(slot.shape[0], dtype=jnp.int32)[:, None], slot.shape)
+    return into.at[rows, slot].add(1, mode="drop")
+
+
+def slot_counts_compare(slot: jax.Array, into: jax.Array) -> jax.Array:
+    """Same as `slot_counts_scatter`, as one compare-and-sum reduction."""
+    bins = jnp.arange(into.shape[1], dtype=jnp.int32)[None, :, None]
+    return into + jnp.sum(slot[:, None, :] == bins, axis=2, dtype=jnp.int32)
+
+
+def slot(bins: int, values, mask, lo, hi) -> jax.Array:
+    """Each value's histogram slot (0: under `lo`, `bins + 1`: over `hi`), or `bins + 2`
+    (no slot) where not `mask` or NaN."""
+    t = jnp.floor((values - lo) / (hi - lo) * bins)
+    inner = jnp.clip(jnp.nan_to_num(t), 0, bins - 1).astype(jnp.int32) + 1
+    slots = jnp.where(values < lo, 0, jnp.where(values > hi, bins + 1, inner))
+    return jnp.where(mask & ~jnp.isnan(values), slots, bins + 2)
+
+
+def counted(g: HistGroup, zero: jax.Array, values, mask, dt) -> jax.Array:
+    """The step's counts of histogram `g`'s rows (`values`, `mask`: `[R_h, B]`) scattered
+    into `zero` (`hist_steps`)."""
+    lo = jnp.asarray(g.lo, dt)[:, None]
+    hi = jnp.asarray(g.hi, dt)[:, None]
+    # A scatter-add into `zero` in place: cheaper than compare-and-count on CPU and CUDA
+    # (XLA does not fuse the compare into the reduction). TPUs scatter slowly: there,
+    # compare and count.
+    return jax.lax.platform_dependent(
+        slot(g.bins, values, mask, lo, hi),
+        zero,
+        cpu=slot_counts_scatter,
+        cuda=slot_counts_scatter,
+        default=slot_counts_compare,
+    )
+
+
+def counted_selected(g: HistGroup, zero: jax.Array, batch: Selected, dt) -> jax.Array:
+    """`counted` of the histogram's rows that `batch` selects (`g.rows`), on a CUDA GPU:
+    with group rows, each entry of a source row scattered once per grouping into the row
+    of its group (`Selected.row_of`), where the rows as arrays would be a masked copy of
+    the source per group, each scattered whole. The kernel adds them to the counts
+    (`HistIn`)."""
+    sel = batch.take(g.rows)
+    if not sel.grouped:
+        return counted(g, zero, *sel.dense()[:2], dt)
+    src, row = sel.row_of()
+    lo, hi = (jnp.asarray((*bound, 0.0), dt)[row] for bound in (g.lo, g.hi))
+    values = jnp.take(sel.values, src, axis=0)
+    return zero.at[row, slot(g.bins, values, row < sel.rows, lo, hi)].add(1, mode="drop")
+
+
+def add(g: HistGroup, h: Count, zero: jax.Array, values, mask, dt):
+    """`h` with the batch counted in, and `zero` (`hist_steps`) as it was."""
+    inc = counted(g, zero, values, mask, dt)
+    # The zeros read through `inc` (see `_fold`'s module docstring).
+    return _count.add(h, inc), jnp.where(inc < 0, inc, 0)
+
+
+class HistIn(NamedTuple):
+    """A histogram's counts (`HistGroup`: the low and high words, `[rows, bins + 2]`
+    uint32) and the step's counts scattered into its zero array (`hist_steps`, int32), as
+    the fused kernel takes them."""
+
+    counted: jax.Array
+    lo: jax.Array
+    hi: jax.Array
+
+
+def add_in_kernel(row, hist_in, hist_out) -> None:
+    """Inside the fused kernel: row `row` of each histogram (where it has one), its step
+    counts added to its words with the carry (`_count.add`), and zeroed (`HistIn`; inputs
+    and outputs in that order, three per histogram). A histogram's rows are some of the
+    batch's, so the batch's programs cover them, each a row."""
+    for i in range(0, len(hist_in), 3):
+        step, lo, hi = hist_in[i : i + 3]
+        rows, slots = step.shape
+        c = jax.lax.broadcasted_iota(jnp.int32, (1, pl.next_power_of_2(slots)), 1)
+        there = (c < slots) & (row < rows)
+        # Entries left out are pointed past the row (Pallas' interpret mode writes them
+        # back).
+        at = (jnp.broadcast_to(jnp.minimum(row, rows - 1), c.shape), jnp.where(there, c, slots))
+        inc = plt.load(step.at[at], mask=there, other=0).astype(jnp.uint32)
+        low = plt.load(lo.at[at], mask=there, other=0)
+        high = plt.load(hi.at[at], mask=there, other=0)
+        carry = (inc > ~low).astype(jnp.uint32)
+        out_step, out_lo, out_hi = hist_out[i : i + 3]
+        plt.store(out_lo.at[at], low + inc, mask=there)
+        plt.store(out_hi.at[at], high + carry, mask=there)
+        plt.store(out_step.at[at], jnp.zeros_like(inc, step.dtype), mask=there)
