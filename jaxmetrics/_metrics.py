@@ -312,7 +312,9 @@ class Metrics:
         )
         ended = done[None, :] & any_step
         ok = ended & (jnp.isfinite(values) | prop)
-        bad = (~finite).astype(jnp.int32) + (ended & ~ok).astype(jnp.int32)
+        # Flags and counted rows are uint8 (each at most 2, or the number of groupings):
+        # at 65,536 envs an int32 [M, E] array is 2.6 MB written and read again per step.
+        bad = (~finite).astype(jnp.uint8) + (ended & ~ok).astype(jnp.uint8)
         group_ids = [
             like(i, state.running.steps[0], f"the group indices of {where}")
             for i, where in _inputs.group_ids(self._rows, step_input, num_envs)
@@ -342,7 +344,8 @@ class Metrics:
                 for g, i in zip(self._rows.groupings, group_ids)
             ]
             shard_counts.append(jnp.sum(jnp.stack(out_of_range), axis=0, dtype=jnp.int32))
-        counted = jnp.stack([c.astype(jnp.int32) for c in shard_counts])
+        narrow = jnp.uint8 if len(self._rows.groupings) < 256 else jnp.int32
+        counted = jnp.stack([c.astype(narrow) for c in shard_counts])
 
         def fold(st, b, t, e, g):
             segments = None if g is None else (segments_plan, g)
@@ -402,7 +405,7 @@ class Metrics:
             m = m.at[i, : a.shape[0]].set(True)
         finite = jnp.isfinite(v)
         ok = m & (finite | jnp.asarray(self._rows.lg_propagate)[:, None])
-        bad = (m & ~finite).astype(jnp.int32)
+        bad = (m & ~finite).astype(jnp.uint8)
         logged = _stream.add(self._rows.lg_plan, state.logged, v, ok, bad)
         return state._replace(logged=logged)
 

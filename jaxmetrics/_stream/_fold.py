@@ -40,9 +40,9 @@ def add(
     nonfinite: jax.Array | None = None,
 ) -> StreamState:
     """Feeds `values[R, B]` where `mask`, column order being arrival order, and counts
-    `nonfinite[R, B]` (int32, per entry) into the period's non-finite counts."""
+    `nonfinite[R, B]` (an integer per entry) into the period's non-finite counts."""
     if nonfinite is None:
-        nonfinite = jnp.zeros(values.shape, jnp.int32)
+        nonfinite = jnp.zeros(values.shape, jnp.uint8)
     batch = Selected.every(values, mask, nonfinite)
     return add_with_counts(plan, s, batch, _nothing_counted(values), _count.zeros((0,)))[0]
 
@@ -66,7 +66,7 @@ def add_with_counts(
     segments: tuple[SegmentPlan, tuple[jax.Array, ...]] | None = None,
 ) -> tuple[StreamState, Count]:
     """`add` of the rows that `batch` selects (`Selected`), and `counts`
-    (`[counts_width(plan, C)]`) plus the sum of each row of `counted[C, B]` (int32), in
+    (`[counts_width(plan, C)]`) plus the sum of each row of `counted[C, B]` (integers), in
     its first C entries. The sums are taken in the batch's own reduction and added in
     the per-row fields' kernel, where separate counts would be two more kernels. `fused`
     lets a CUDA GPU fold the batch (its reduction, arrival ranks, EMA sum and ring
@@ -294,7 +294,8 @@ def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None
         jnp.where(mask, values, jnp.full_like(values, -jnp.inf)),
         jnp.where(mask, values - shift[:, None], zero),
         zero,
-        nonfinite,
+        # Summed as int32; the flags and counted rows come narrower (`Metrics.update`).
+        nonfinite.astype(jnp.int32),
     )
     inits = (
         np.int32(0),
@@ -315,7 +316,7 @@ def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None
     # one [R] array each (several scalar outputs would need a concatenation).
     rows = values.shape[0]
     packs = counted.shape[0] // rows if rows else 0
-    operands += tuple(counted[i * rows : (i + 1) * rows] for i in range(packs))
+    operands += tuple(counted[i * rows : (i + 1) * rows].astype(jnp.int32) for i in range(packs))
     inits += (np.int32(0),) * packs
     e = 8 if has_ema else 7
 

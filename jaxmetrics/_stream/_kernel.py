@@ -220,15 +220,19 @@ def _kernel(
         """The row's mask, non-finite flags and counted rows at `n` entries from `start`
         or at `cols` (`reader`), and what reads its values there."""
         at, match = reader(start, n, fresh, cols)
-        m, bad = at(m_ref, src), at(bad_ref, src)
+        # The flags and counted rows come narrower than the int32 they are summed in.
+        m, bad = at(m_ref, src), at(bad_ref, src).astype(jnp.int32)
         values = functools.partial(at, x_ref, src)
         if match is not None:
             m = m & match
-            bad = bad * match.astype(bad.dtype)
+            bad = bad * match.astype(jnp.int32)
         if not counted:
             return [m, bad, *(jnp.zeros((1, n), jnp.int32) for _ in counted_rows)], values
         full = jnp.ones((1, n), jnp.bool_) if fresh is None else fresh
-        sums = [at(counted_ref, jnp.maximum(c, 0), full & (c >= 0)) for c in counted_rows]
+        sums = [
+            at(counted_ref, jnp.maximum(c, 0), full & (c >= 0)).astype(jnp.int32)
+            for c in counted_rows
+        ]
         return [m, bad, *sums], values
 
     def load(j):
@@ -462,8 +466,8 @@ def fold(
     hists: tuple[HistIn, ...] = (),
 ) -> tuple[Batch, tuple[jax.Array, ...], tuple[HistIn, ...]]:
     """Folds the rows `[R, B]` that `batch` selects (`Selected`; float32 values, bool
-    mask, int32 non-finite flags): their statistics (`Batch`; `shift[R]` float32, and the
-    sums of `counted[C, B]` (int32, C up to `packs` times R) as `packs` counted rows per
+    mask, integer non-finite flags): their statistics (`Batch`; `shift[R]` float32, and the
+    sums of `counted[C, B]` (integers, C up to `packs` times R) as `packs` counted rows per
     batch row, `counted` row `p * R + r` in pack p of row r: read with the batch, where a
     reduction of its own is one more kernel per step), and each ring's data with its
     rows' newest arrivals written in, stamped with the row's `steps[r]` (uint32); and

@@ -101,7 +101,7 @@ def _list_kernel(ok_ref, bad_ref, counts_ref, *refs, batch: int, chunk: int, cou
 
     def summing():
         r = pl.ds(row - sources, 1)
-        part = jnp.where(at >= lo, counted_ref[r, pl.ds(start, chunk)], 0)
+        part = jnp.where(at >= lo, counted_ref[r, pl.ds(start, chunk)].astype(jnp.int32), 0)
         sums_ref[r, pl.ds(c, 1)] = jnp.sum(part, axis=1, keepdims=True)
 
     if counted:
@@ -112,7 +112,7 @@ def _list_kernel(ok_ref, bad_ref, counts_ref, *refs, batch: int, chunk: int, cou
 
 def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Reached:
     """The lists of `batch`'s source rows (`Reached`), and the sums of `counted`'s rows
-    (`[C, B]` int32: a counted row sums every entry, reached or not). XLA counts each
+    (`[C, B]` integers: a counted row sums every entry, reached or not). XLA counts each
     chunk's reached entries; one program per chunk lists them, or sums a counted row's."""
     sources, width = batch.ok.shape
     size = chunk(width)

@@ -159,7 +159,7 @@ def segment_batch(
     mean and squared deviations of its values less `shift`, and its non-finite count,
     of the entries of `values[sources, B]` where `ok` whose `group` is that group.
     `_fold.batch_two_pass` per group, each pass a few scatters into the group slots;
-    `bad` (int32) counts for the entry's group whether or not it is `ok`.
+    `bad` (integers) counts for the entry's group whether or not it is `ok`.
 
     A CPU scatters one statistic at a time (`scatter_each`: a scatter of several
     channels is slower per statistic there); elsewhere the statistics of a pass that
@@ -212,7 +212,7 @@ def _segment_batch(
     ones = ok.reshape(-1).astype(dt)
     kf, bsum = map(slots, scatter("add", 0, at, size, (ones, flat)))
     bmax, neg_min = map(slots, scatter("max", -jnp.inf, at, size, (flat, -flat)))
-    (nbad,) = map(slots, scatter("add", 0, slot, size, (bad.reshape(-1),)))
+    (nbad,) = map(slots, scatter("add", 0, slot, size, (bad.reshape(-1).astype(jnp.int32),)))
     k, bmin = kf.astype(jnp.int32), -neg_min
     kd = jnp.maximum(k, 1).astype(dt)
     pivot = jnp.where(shift != 0, shift, bsum / kd)

@@ -29,7 +29,7 @@ from ._state import take_rows
 class Selected:
     """Row r of the batch is source row `src[r]` of `values` (`[S, B]`), masked in where
     `ok` and, for `kind[r] >= 0`, where grouping `kind[r]`'s index (`ids[kind[r]]`,
-    `[K, B]` int32) is `group[r]`; its non-finite flags (`bad`, int32) count in the same
+    `[K, B]` int32) is `group[r]`; its non-finite flags (`bad`, integers) count in the same
     entries of that group whether or not they are `ok`. `kind[r] == -1`: every entry."""
 
     values: jax.Array
@@ -103,10 +103,10 @@ class Selected:
         return src, jnp.where(inside, at, self.rows)
 
     def dense(self) -> tuple[jax.Array, jax.Array, jax.Array]:
-        """The rows as arrays `[R, B]`: values, mask and int32 non-finite flags."""
+        """The rows as arrays `[R, B]`: values, mask and non-finite flags."""
         if not self.grouped:
             return tuple(take_rows(self.src, a) for a in (self.values, self.ok, self.bad))
         src = np.asarray(self.src, np.int32)
         take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
         match = self.group_index(self.kind) == jnp.asarray(self.group, jnp.int32)[:, None]
-        return take(self.values), take(self.ok) & match, take(self.bad) * match.astype(jnp.int32)
+        return take(self.values), take(self.ok) & match, jnp.where(match, take(self.bad), 0)

@@ -181,6 +181,41 @@ def test_nonfinite_propagate_policy_makes_statistics_nonfinite(data):
     check_rollout("propagate", *data)
 
 
+@pytest.mark.parametrize("path", ["jnp", "kernel", "segments"])
+def test_counts_of_one_step_past_a_byte_are_exact(monkeypatch, path):
+    # The per-entry non-finite flags and the per-env counted rows reach the fold as uint8
+    # (`Metrics.update`): one step of 700 envs, each NaN and ending, in groups with some
+    # indices out of range, must count every one. Against numpy on the inputs, on the
+    # jnp path, the CUDA kernel's (interpret mode) and the segment reductions'.
+    from jaxmetrics import _stream
+
+    n, names = 700, ("a", "b", "c")
+    stats = ("count", "max") if path == "segments" else ("count", jm.ema(0.1))
+    metrics = jm.Metrics(
+        terms={"x": jm.Term(lambda s: s[0], reduce="mean", stats=stats)},
+        groups=jm.groups(lambda s: s[1], names),
+    )
+    if path == "kernel":
+        fold = _stream.add_with_counts
+        monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
+    rng = np.random.default_rng(11)
+    ids = rng.integers(-1, len(names) + 1, n).astype(np.int32)
+    x = np.full(n, np.nan, np.float32)
+    x[::7] = 1.0  # finite, in an episode that has no other step: no flag
+    state = jax.jit(metrics.update)(
+        metrics.init(n), (jnp.asarray(x), jnp.asarray(ids)), jnp.ones(n, bool)
+    )
+    host = metrics.to_host(metrics.compute(state))
+    prefix = metrics.prefixes["episode"]
+    bad = ~np.isfinite(x)
+    assert host[f"{prefix}/x/nonfinite"] == int(bad.sum()) > 255
+    assert host[f"{prefix}/x/count"] == int((~bad).sum())
+    for g, name in enumerate(names):
+        assert host[f"{prefix}/x/{name}/nonfinite"] == int((bad & (ids == g)).sum())
+    assert host["Counters/episodes"] == host["Counters/env_steps"] == n
+    assert host["Counters/ungrouped"] == int(((ids < 0) | (ids >= len(names))).sum())
+
+
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     st.lists(
