@@ -1,15 +1,16 @@
 """How the fused kernel (`_kernel`) splits a batch's rows into chunks, one program each,
-and what XLA computes around it for them: each chunk's masked-in entries before the
-kernel, and the chunks' partial statistics combined after it.
+and a chunk into blocks (`blocking`), and what is counted and combined for them: each
+chunk's masked-in entries, by XLA before the kernel or by the program itself
+(`masked_in_around`), and the chunks' partial statistics combined after it.
 
 A row longer than `ONE_PROGRAM` entries is folded by one program per chunk of it
 (`chunking`), so that the GPU's multiprocessors share the batch. With an EMA or a ring, a
-chunk's program needs the row's masked-in entries before and after it, from which it
-knows how many of the row's arrivals follow each of its own (its ranks, EMA weights and
-ring slots are the row's): it counts them in the row's mask itself, or one small XLA
-reduction first counts each chunk's (`chunk_counts`); without either it needs no rank.
-The chunks' partial statistics are combined after the kernel, in the kernel that updates
-the per-row state (`combine`).
+chunk's program needs the row's masked-in entries before and after it, from which it knows
+how many of the row's arrivals follow each of its own (its ranks, EMA weights and ring slots
+are the row's): it counts them in the row's mask itself (`masked_in_around`), or one small
+XLA reduction first counts each chunk's (`chunk_counts`); without either it needs no rank.
+The chunks' partial statistics are combined after the kernel, in the kernel that updates the
+per-row state (`combine`).
 """
 
 import functools
@@ -135,3 +136,27 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
     # The ints summed as one [R, I] array: stacked from [R] columns, the counted sums of
     # several packs (one row) were a concatenation that XLA wrote in a kernel of its own.
     return jnp.stack(row_floats, axis=1), total(ints)
+
+
+def blocking(batch: int) -> tuple[int, int]:
+    """The block (the largest power of two up to `batch`) and the number of blocks (1 or
+    2) that cover a row of `batch` entries."""
+    block = 1 << (batch.bit_length() - 1)
+    return block, -(-batch // block)
+
+
+def masked_in_around(mask_at, batch: int, lo, hi) -> tuple[jax.Array, jax.Array]:
+    """The masked-in entries of a row of `batch` entries (`Chunking.counted_here`)
+    before entry `lo` and from entry `hi` on (`[1, 1]` int32 each), read in `blocking`'s
+    blocks by `mask_at(start, n, fresh)` (the row's mask at `n` entries from `start`, those
+    not `fresh` masked out; None: all are fresh)."""
+    block, n_blocks = blocking(batch)
+    earlier = later = jnp.zeros((1, 1), jnp.int32)
+    for j in range(n_blocks):
+        start = min(j * block, batch - block)
+        at = jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) + start
+        m = mask_at(start, block, None if start == j * block else at >= j * block)
+        m = m.astype(jnp.int32)
+        earlier += jnp.sum(jnp.where(at < lo, m, 0), axis=1, keepdims=True)
+        later += jnp.sum(jnp.where(at >= hi, m, 0), axis=1, keepdims=True)
+    return earlier, later

@@ -17,7 +17,7 @@ from .. import _count, _sketch
 from .._count import Count
 from .._numerics import kahan_add
 from .._sharding import gathered
-from . import _hists, _kernel, _segments
+from . import _hists, _kernel, _reached, _segments
 from ._segments import SegmentPlan
 from ._selected import Selected
 from ._state import (
@@ -506,12 +506,32 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
         ema = None
         if plan.ema_rows:
             ema = _kernel.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off)
+        groups = sum(k >= 0 for k in batch.kind)
+        listed = _reached.listed(groups, batch.batch, ema is not None or bool(rings))
+        # Group rows read from the lists count their few entries into the histograms in
+        # the kernel, where XLA would find each entry's group row and scatter every entry
+        # of the batch (docs/benchmarks.md, "Per-group statistics"); otherwise XLA
+        # scatters and the kernel adds the counts.
+        here = listed and batch.grouped
+        hist_rows = tuple(_hists.HistRows.of(g, rows) for g in plan.hists) if here else ()
         hists = tuple(
-            _hists.HistIn(_hists.counted_selected(g, z, batch, plan.dtype), h.lo, h.hi)
+            _hists.HistIn(
+                z if here else _hists.counted_selected(g, z, batch, plan.dtype), h.lo, h.hi
+            )
             for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
         )
         stats, data, hists = _kernel.fold(
-            batch, shift, s.steps, counted, packs, ema, tuple(rings), interpret, hists=hists
+            batch,
+            shift,
+            s.steps,
+            counted,
+            packs,
+            ema,
+            tuple(rings),
+            interpret,
+            listed=listed,
+            hists=hists,
+            hist_rows=hist_rows,
         )
         data = iter(data)
         ema_data = tuple(next(data) if r.size else r.data for r in s.ema_rings)

@@ -1,6 +1,9 @@
 """A batch counted into the histograms: each value's slot, the step's counts scattered
 into the state's zero array (`hist_steps`), and their add to the exact counts, by XLA
-(`add`) or, on a CUDA GPU, inside the fused kernel (`HistIn`, `add_in_kernel`).
+(`add`) or, on a CUDA GPU, inside the fused kernel (`HistIn`, `add_in_kernel`). Where
+that kernel reads group rows from the lists of reached entries (a few entries a row), it
+counts them itself (`HistRows`, `counted_in_kernel`, `add_counted_in_kernel`) and XLA
+scatters nothing.
 
 The step's counts are scattered in place into `hist_steps`, which the add writes back as
 zeros: a scatter into a fresh zero array costs one more kernel per step, the fill.
@@ -10,6 +13,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
@@ -111,3 +115,67 @@ def add_in_kernel(row, hist_in, hist_out) -> None:
         plt.store(out_lo.at[at], low + inc, mask=there)
         plt.store(out_hi.at[at], high + carry, mask=there)
         plt.store(out_step.at[at], jnp.zeros_like(inc, step.dtype), mask=there)
+
+
+class HistRows(NamedTuple):
+    """A histogram that the fused kernel counts itself: its bins, and per batch row its
+    row of the histogram (-1: none) and that row's range (float32, 0 where none)."""
+
+    bins: int
+    row: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @classmethod
+    def of(cls, g: HistGroup, rows: int) -> "HistRows":
+        """`g`'s rows among a batch of `rows` rows (`g.rows` are batch rows)."""
+        row = np.full(rows, -1, np.int32)
+        lo, hi = np.zeros(rows, np.float32), np.zeros(rows, np.float32)
+        row[list(g.rows)] = np.arange(len(g.rows), dtype=np.int32)
+        lo[list(g.rows)], hi[list(g.rows)] = g.lo, g.hi
+        return cls(g.bins, row, lo, hi)
+
+
+def count_in_kernel(bins: int, spec, blocks, values_of, total, words) -> None:
+    """Inside the fused kernel, reading a row from its list: the row's entries counted into
+    its row of a histogram of `bins` bins, if it has one. `spec` is the row's `[1, 3]`
+    table columns (its histogram row, -1: none; the float32 bits of `lo` and `hi`);
+    `blocks` and `values_of` read the row (`_kernel`'s `fold_blocks`), `total` its
+    masked-in entries; `words` the histogram's low and high words in, then out."""
+    row = jnp.sum(spec[:, 0:1])
+    lo, hi = (jax.lax.bitcast_convert_type(spec[:, j : j + 1], jnp.float32) for j in (1, 2))
+
+    def count():
+        def body(m, bad, *rest):
+            *_, x, acc = rest
+            return acc + counted_in_kernel(bins, x, m, lo, hi)
+
+        zero = jnp.zeros((pl.next_power_of_2(bins + 2), 1), jnp.int32)
+        add_counted_in_kernel(row, blocks(body, zero, values_of()), *words)
+
+    jax.lax.cond((row >= 0) & (jnp.sum(total) > 0), count, lambda: None)
+
+
+def counted_in_kernel(bins: int, values, mask, lo, hi) -> jax.Array:
+    """Inside the fused kernel: a block's counts per slot of `values` where `mask` (`[1, n]`;
+    `lo`, `hi`: `[1, 1]`), `[P, 1]` int32 with P a power of two past the `bins + 2` slots,
+    each entry's slot compared with every slot."""
+    s = slot(bins, values, mask, lo, hi)
+    c = jax.lax.broadcasted_iota(jnp.int32, (pl.next_power_of_2(bins + 2), 1), 0)
+    return jnp.sum((s == c).astype(jnp.int32), axis=1, keepdims=True)
+
+
+def add_counted_in_kernel(row, inc, lo, hi, lo_out, hi_out) -> None:
+    """Inside the fused kernel: `inc` (`counted_in_kernel`) added to row `row` (a scalar) of
+    a histogram's words with the carry (`_count.add`), read from `lo`, `hi` and written to
+    `lo_out`, `hi_out`."""
+    slots = lo.shape[1]
+    c = jax.lax.broadcasted_iota(jnp.int32, inc.shape, 0)
+    there = c < slots
+    # Entries left out are pointed past the row (Pallas' interpret mode writes them back).
+    at = (jnp.broadcast_to(row, c.shape), jnp.where(there, c, slots))
+    low = plt.load(lo.at[at], mask=there, other=0)
+    high = plt.load(hi.at[at], mask=there, other=0)
+    add = inc.astype(jnp.uint32)
+    plt.store(lo_out.at[at], low + add, mask=there)
+    plt.store(hi_out.at[at], high + (add > ~low).astype(jnp.uint32), mask=there)

@@ -39,8 +39,16 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 from . import _reached
-from ._chunks import chunk_counts, chunking, combine, counted_input, reads_counts
-from ._hists import HistIn, add_in_kernel
+from ._chunks import (
+    blocking,
+    chunk_counts,
+    chunking,
+    combine,
+    counted_input,
+    masked_in_around,
+    reads_counts,
+)
+from ._hists import HistIn, HistRows, add_in_kernel, count_in_kernel
 from ._selected import Selected
 
 MIN_BATCH = 32
@@ -52,13 +60,6 @@ def fits(batch: int, dtype) -> bool:
     from `MIN_BATCH` to `MAX_BATCH`, the largest measured faster than XLA's kernels
     (docs/benchmarks.md)."""
     return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
-
-
-def blocking(batch: int) -> tuple[int, int]:
-    """The block (the largest power of two up to `batch`) and the number of blocks (1 or
-    2) that cover a row of `batch` entries."""
-    block = 1 << (batch.bit_length() - 1)
-    return block, -(-batch // block)
 
 
 class RingIn(NamedTuple):
@@ -76,7 +77,8 @@ class Table:
     """The columns of a batch row's static ints (`fold`'s `table`, `[R, n]` int32): the
     EMA coefficient's float32 bits, the row's source row, grouping (-1: none) and group
     (`Selected`), its counted row per pack (-1: none), then each ring's `row` and
-    `pos_row` (`RingIn`)."""
+    `pos_row` (`RingIn`), then each histogram's row and the float32 bits of its range
+    where the kernel counts them (`HistRows`)."""
 
     COEFF, SRC, KIND, GROUP, COUNTED = range(5)
 
@@ -84,6 +86,11 @@ class Table:
     def ring(packs: int, i: int) -> int:
         """The column of ring `i`'s `row` (its `pos_row` follows)."""
         return Table.COUNTED + packs + 2 * i
+
+    @staticmethod
+    def hist(packs: int, rings: int, i: int) -> int:
+        """The column of histogram `i`'s row (its `lo` and `hi` bits follow)."""
+        return Table.ring(packs, rings) + 3 * i
 
 
 class EmaIn(NamedTuple):
@@ -93,23 +100,6 @@ class EmaIn(NamedTuple):
     coeff: np.ndarray
     ema_w: jax.Array
     ema_off: jax.Array
-
-
-def _masked_in_around(mask_at, batch: int, lo, hi) -> tuple[jax.Array, jax.Array]:
-    """The masked-in entries of a row of `batch` entries (`_chunks.Chunking.counted_here`)
-    before entry `lo` and from entry `hi` on (`[1, 1]` int32 each), read in `blocking`'s
-    blocks by `mask_at(start, n, fresh)` (the row's mask at `n` entries from `start`, those
-    not `fresh` masked out; None: all are fresh)."""
-    block, n_blocks = blocking(batch)
-    earlier = later = jnp.zeros((1, 1), jnp.int32)
-    for j in range(n_blocks):
-        start = min(j * block, batch - block)
-        at = jax.lax.broadcasted_iota(jnp.int32, (1, block), 1) + start
-        m = mask_at(start, block, None if start == j * block else at >= j * block)
-        m = m.astype(jnp.int32)
-        earlier += jnp.sum(jnp.where(at < lo, m, 0), axis=1, keepdims=True)
-        later += jnp.sum(jnp.where(at >= hi, m, 0), axis=1, keepdims=True)
-    return earlier, later
 
 
 def _kernel(
@@ -123,6 +113,7 @@ def _kernel(
     grouped: bool,
     gather: int = 0,
     hists: int = 0,
+    hist_bins: tuple[int, ...] = (),
 ):
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
     sizes, `packs` the counted rows per batch row (`counted`: read from a counted input;
@@ -138,22 +129,25 @@ def _kernel(
     out as from the batch.
 
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
-    blocks (`blocking`), the last ending at the row's end with the entries already
-    covered masked out, so that no load reaches past the row (Pallas' interpret mode
-    cannot). The mask, flags and counted rows are read first and counted; a chunk with
-    masked-in entries then reads its values and makes two passes over them: the first
-    sums what needs no arrival rank, the second takes the ranks, the moments around the
-    first pass's mean, the EMA's weighted sum and the ring writes. A chunk without any
-    (at most steps, most chunks of group rows) skips both. A chunk's ranks add the row's
-    masked-in entries in later chunks (counted in the row's mask by `_masked_in_around`,
-    or from `counts`), and its EMA weights and ring slots follow from those global ranks
-    and the row's count. Its mean deviation is also written off a pivot that every chunk
-    of the row shares (the row's first value), so that the chunks' means combine without
-    the rounding of means far from zero.
+    blocks (`blocking`), the last ending at the row's end with the entries already covered
+    masked out, so that no load reaches past the row (Pallas' interpret mode cannot). The
+    mask, flags and counted rows are read first and counted; a chunk with masked-in entries
+    then reads its values and makes two passes over them: the first sums what needs no
+    arrival rank, the second takes the ranks, the moments around the first pass's mean, the
+    EMA's weighted sum and the ring writes. A chunk without any (at most steps, most chunks
+    of group rows) skips both. A chunk's ranks add the row's masked-in entries in later
+    chunks (counted in the row's mask by `_chunks.masked_in_around`, or from `counts`), and
+    its EMA weights and ring slots follow from those global ranks and the row's count. Its
+    mean deviation is also written off a pivot that every chunk of the row shares (the row's
+    first value), so that the chunks' means combine without the rounding of means far from
+    zero.
 
     The first chunk of row i also adds the step's counts of row i of each of `hists`
     histograms (as it has rows) to its words, with the carry, and zeroes them (`HistIn`):
-    XLA's scatter counts them, and their add would be a kernel of its own."""
+    XLA's scatter counts them, and their add would be a kernel of its own. With
+    `hist_bins` (only with `gather`) the program counts its own row's entries into its
+    row of each histogram instead (`HistRows`), a few entries a step where XLA's scatter
+    reads every entry of the batch."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
@@ -266,7 +260,7 @@ def _kernel(
         later = row_sum(jnp.where(at > chunk_id, marks, 0))
     elif n_chunks > 1 and ranked:
         lo = chunk_id * chunk
-        earlier, later = _masked_in_around(mask_at, batch, lo, jnp.minimum(lo + chunk, batch))
+        earlier, later = masked_in_around(mask_at, batch, lo, jnp.minimum(lo + chunk, batch))
     shift = shift_ref[...]
 
     def write(xsum, xmin, xmax, p, s1, s2, wsum, total, nbad, csums):
@@ -425,9 +419,13 @@ def _kernel(
             return xsum, xmin, xmax, p, s1, s2, wsum
 
         write(*jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty), total, nbad, csums)
+        for i, bins in enumerate(hist_bins):
+            at = Table.hist(packs, len(rings), i)
+            words = (*hist_in[3 * i + 1 : 3 * i + 3], *hist_out[3 * i + 1 : 3 * i + 3])
+            count_in_kernel(bins, table[:, at : at + 3], blocks, values_of, total, words)
 
     fold_chunk()
-    if hists:
+    if hists and not hist_bins:
         row = pl.program_id(0)
         add = functools.partial(add_in_kernel, row, hist_in, hist_out)
         if n_chunks == 1:
@@ -464,6 +462,7 @@ def fold(
     interpret: bool = False,
     listed: bool | None = None,
     hists: tuple[HistIn, ...] = (),
+    hist_rows: tuple[HistRows, ...] = (),
 ) -> tuple[Batch, tuple[jax.Array, ...], tuple[HistIn, ...]]:
     """Folds the rows `[R, B]` that `batch` selects (`Selected`; float32 values, bool
     mask, integer non-finite flags): their statistics (`Batch`; `shift[R]` float32, and the
@@ -471,7 +470,9 @@ def fold(
     batch row, `counted` row `p * R + r` in pack p of row r: read with the batch, where a
     reduction of its own is one more kernel per step), and each ring's data with its
     rows' newest arrivals written in, stamped with the row's `steps[r]` (uint32); and
-    each histogram (`HistIn`) with its step's counts added and zeroed.
+    each histogram (`HistIn`) with its step's counts added and zeroed, or, with
+    `hist_rows` (one per histogram; the rows read from the lists only), with its rows'
+    entries counted by the kernel, the step's counts left as they are (zero).
 
     The EMA's weighted sum is `sum c(1-c)^after (x - off)` over the row's masked-in
     entries, with `after` how many masked-in entries follow each one; `off` is `ema_off`
@@ -486,6 +487,7 @@ def fold(
         ranked = ema is not None or bool(rings)
         listed = _reached.listed(sum(k >= 0 for k in batch.kind), width, ranked)
     gather = _reached.block(width) if listed else 0
+    assert not hist_rows or (gather and len(hist_rows) == len(hists))
     chunk, n_chunks, _ = (gather, 1, False) if gather else chunking(rows, width, batch.grouped)
     # The counted rows are summed over every entry, not the reached ones: read with the
     # batch, or where the rows are read from the lists, by the listing's kernel.
@@ -497,6 +499,9 @@ def fold(
         table[-1] = np.full_like(at, -1)
     for r in rings:
         table += [np.stack([np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)], 1)]
+    for h in hist_rows:
+        bits = [np.asarray(a, np.float32).view(np.int32) for a in (h.lo, h.hi)]
+        table += [np.stack([np.asarray(h.row, np.int32), *bits], 1)]
     table = np.concatenate(table, axis=1).astype(np.int32)
     table = np.pad(table, ((0, 0), (0, pl.next_power_of_2(table.shape[1]) - table.shape[1])))
 
@@ -555,6 +560,7 @@ def fold(
         grouped=batch.grouped,
         gather=gather,
         hists=len(hists),
+        hist_bins=tuple(h.bins for h in hist_rows),
     )
     # A program of group rows mostly finds its chunk empty or nearly so: with fewer warps
     # more such programs run at once (docs/benchmarks.md, "Per-group statistics").
