@@ -138,12 +138,13 @@ class HistRows(NamedTuple):
 
 def count_in_kernel(bins: int, spec, blocks, values_of, total, words) -> None:
     """Inside the fused kernel, reading a row from its list: the row's entries counted into
-    its row of a histogram of `bins` bins, if it has one. `spec` is the row's `[1, 3]`
-    table columns (its histogram row, -1: none; the float32 bits of `lo` and `hi`);
+    its row of a histogram of `bins` bins, if it has one. `spec` is the row's three `[1, 1]`
+    table columns (its histogram row, -1: none; the float32 bits of `lo` and `hi`: Triton's
+    arrays are powers of two);
     `blocks` and `values_of` read the row (`_kernel`'s `fold_blocks`), `total` its
     masked-in entries; `words` the histogram's low and high words in, then out."""
-    row = jnp.sum(spec[:, 0:1])
-    lo, hi = (jax.lax.bitcast_convert_type(spec[:, j : j + 1], jnp.float32) for j in (1, 2))
+    row = jnp.sum(spec[0])
+    lo, hi = (jax.lax.bitcast_convert_type(c, jnp.float32) for c in spec[1:])
 
     def count():
         def body(m, bad, *rest):

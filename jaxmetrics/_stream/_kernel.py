@@ -422,7 +422,8 @@ def _kernel(
         for i, bins in enumerate(hist_bins):
             at = Table.hist(packs, len(rings), i)
             words = (*hist_in[3 * i + 1 : 3 * i + 3], *hist_out[3 * i + 1 : 3 * i + 3])
-            count_in_kernel(bins, table[:, at : at + 3], blocks, values_of, total, words)
+            spec = tuple(table[:, j : j + 1] for j in range(at, at + 3))
+            count_in_kernel(bins, spec, blocks, values_of, total, words)
 
     fold_chunk()
     if hists and not hist_bins:
