@@ -138,11 +138,11 @@ class HistRows(NamedTuple):
 
 def count_in_kernel(bins: int, spec, blocks, values_of, total, words) -> None:
     """Inside the fused kernel, reading a row from its list: the row's entries counted into
-    its row of a histogram of `bins` bins, if it has one. `spec` is the row's three `[1, 1]`
-    table columns (its histogram row, -1: none; the float32 bits of `lo` and `hi`: Triton's
-    arrays are powers of two);
-    `blocks` and `values_of` read the row (`_kernel`'s `fold_blocks`), `total` its
-    masked-in entries; `words` the histogram's low and high words in, then out."""
+    its row of a histogram of `bins` bins, if it has one. `spec` is the row's table columns
+    as three `[1, 1]` slices (Triton's arrays are powers of two): its histogram row (-1:
+    none) and the float32 bits of `lo` and `hi`. `blocks` and `values_of` read the row
+    (`_kernel`'s `fold_blocks`), `total` is its masked-in entries, `words` the histogram's
+    low and high words in, then out."""
     row = jnp.sum(spec[0])
     lo, hi = (jax.lax.bitcast_convert_type(c, jnp.float32) for c in spec[1:])
 
