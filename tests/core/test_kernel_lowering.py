@@ -1,0 +1,44 @@
+"""The fused kernels lowered for a CUDA GPU on this machine. Pallas' Triton lowering runs
+when the update is lowered, so what Triton rejects and Pallas' interpret mode (the other
+kernel tests) accepts fails here too, not only on a GPU: arrays whose sizes are not powers
+of two, a `cond` on a constant predicate. Each case is one way the kernels read a batch."""
+
+import jax
+import jax.numpy as jnp
+import pytest
+from jax import export
+
+from jaxmetrics.bench import _workload as wl
+
+TRITON = "__gpu$xla.gpu.triton"
+
+
+@pytest.mark.parametrize(
+    ("num_envs", "groups", "features"),
+    [
+        (256, 0, "full"),  # one program per row
+        (3000, 0, "full"),  # chunks that count the row's mask, two blocks each
+        (4097, 0, "full"),  # chunks counted by XLA, the last one overlapping
+        (24576, 0, "full"),  # chunks of 2,048
+        (65536, 0, "full"),  # rows read from the lists
+        (300, 3, "full"),  # group rows from the lists, histograms counted in the kernel
+        (4096, 64, "full"),
+        (1024, 2, "simple"),  # group rows of period statistics, from the batch
+        (4096, 8, "simple"),
+    ],
+)
+def test_fused_kernels_lower_to_triton_for_cuda(monkeypatch, num_envs, groups, features):
+    # As on a GPU: the segment rows' choice reads the default backend at trace time.
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    metrics = wl.random_spec(10, features=features, groups=groups)
+    args = (
+        metrics.init(num_envs),
+        jnp.zeros((10, num_envs), jnp.float32),
+        jnp.zeros(num_envs, bool),
+    )
+    lowered = export.export(
+        jax.jit(metrics.update),
+        platforms=["cuda"],
+        disabled_checks=[export.DisabledSafetyCheck.custom_call(TRITON)],
+    )(*args)
+    assert TRITON in lowered.mlir_module()
