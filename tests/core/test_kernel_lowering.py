@@ -8,9 +8,33 @@ import jax.numpy as jnp
 import pytest
 from jax import export
 
-from jaxmetrics.bench import _workload as wl
+import jaxmetrics as jm
 
 TRITON = "__gpu$xla.gpu.triton"
+
+
+def _spec(features: str, groups: int) -> jm.Metrics:
+    """Four terms reading rows of a `[4, E]` input; "full": with EMAs, windows and two
+    histograms, else period statistics only; each env in group `row 0 * groups`."""
+    if features == "full":
+        stats = {
+            "a": ("mean", "std", jm.ema(0.05), jm.window(7, percentiles=(50,))),
+            "b": ("max", jm.histogram(20, (0.0, 1.0)), jm.window(5)),
+            "c": ("min", jm.histogram(5, (-1.0, 1.0)), jm.ema(0.5)),
+            "d": ("sum", "count"),
+        }
+    else:
+        stats = {"a": ("mean", "std"), "b": ("max",), "c": ("min",), "d": ("sum", "count")}
+    reduce = {"a": "mean", "b": "max", "c": "min", "d": "sum"}
+    terms = {
+        k: jm.Term(lambda x, i: x[i], reduce=reduce[k], stats=v, params={"i": i})
+        for i, (k, v) in enumerate(stats.items())
+    }
+    grouping = None
+    if groups:
+        names = tuple(f"g{k}" for k in range(groups))
+        grouping = jm.groups(lambda x, n: (x[0] * n).astype(jnp.int32), names, n=groups)
+    return jm.Metrics(terms=terms, groups=grouping)
 
 
 @pytest.mark.parametrize(
@@ -30,10 +54,10 @@ TRITON = "__gpu$xla.gpu.triton"
 def test_fused_kernels_lower_to_triton_for_cuda(monkeypatch, num_envs, groups, features):
     # As on a GPU: the segment rows' choice reads the default backend at trace time.
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    metrics = wl.random_spec(10, features=features, groups=groups)
+    metrics = _spec(features, groups)
     args = (
         metrics.init(num_envs),
-        jnp.zeros((10, num_envs), jnp.float32),
+        jnp.zeros((4, num_envs), jnp.float32),
         jnp.zeros(num_envs, bool),
     )
     lowered = export.export(
