@@ -461,7 +461,8 @@ def fold(
     ema: EmaIn | None = None,
     rings: tuple[RingIn, ...] = (),
     interpret: bool = False,
-    listed: bool | None = None,
+    *,
+    listed: bool,
     hists: tuple[HistIn, ...] = (),
     hist_rows: tuple[HistRows, ...] = (),
 ) -> tuple[Batch, tuple[jax.Array, ...], tuple[HistIn, ...]]:
@@ -480,13 +481,10 @@ def fold(
     for a seeded row (`ema_w > 0`), else `shift`, and the first arrival of an unseeded
     EMA row seeds it, weighing `(1-c)^after` instead. `interpret` runs it anywhere,
     slowly (Pallas' interpret mode). `listed`: whether the rows are read from the lists of
-    reached entries (`_reached`; None: where `_reached.listed` says for the batch's group
-    rows), else from the batch.
+    reached entries (`_reached`; as `_reached.listed` says for the batch), else from the
+    batch.
     """
     rows, width = batch.rows, batch.batch
-    if listed is None:
-        ranked = ema is not None or bool(rings)
-        listed = _reached.listed(sum(k >= 0 for k in batch.kind), width, ranked)
     gather = _reached.block(width) if listed else 0
     assert not hist_rows or (gather and len(hist_rows) == len(hists))
     chunk, n_chunks, _ = (gather, 1, False) if gather else chunking(rows, width, batch.grouped)

@@ -683,7 +683,7 @@ def check_fused_kernel(
         rings = (_kernel.RingIn(d, p, ring_row, np.arange(rows)),) if ranked else ()
         table = (tuple(int(a) for a in b) for b in (src, kind, group))
         selected = _stream.Selected(v, m, bad, i, *table)
-        return _kernel.fold(selected, sh, t, ta, packs, ema, rings, True, listed)
+        return _kernel.fold(selected, sh, t, ta, packs, ema, rings, True, listed=listed)
 
     args = (ok, x, flags_in, ids, steps, counted, ema_w, ema_off, shift, data, pos)
     stats, rings, _ = jax.device_get(jax.jit(fold)(*map(jnp.asarray, args)))
