@@ -108,13 +108,19 @@ def add_in_kernel(row, hist_in, hist_out) -> None:
         # back).
         at = (jnp.broadcast_to(jnp.minimum(row, rows - 1), c.shape), jnp.where(there, c, slots))
         inc = plt.load(step.at[at], mask=there, other=0).astype(jnp.uint32)
-        low = plt.load(lo.at[at], mask=there, other=0)
-        high = plt.load(hi.at[at], mask=there, other=0)
-        carry = (inc > ~low).astype(jnp.uint32)
         out_step, out_lo, out_hi = hist_out[i : i + 3]
-        plt.store(out_lo.at[at], low + inc, mask=there)
-        plt.store(out_hi.at[at], high + carry, mask=there)
+        _add_with_carry(inc, at, there, lo, hi, out_lo, out_hi)
         plt.store(out_step.at[at], jnp.zeros_like(inc, step.dtype), mask=there)
+
+
+def _add_with_carry(inc, at, there, lo, hi, lo_out, hi_out) -> None:
+    """Inside the fused kernel: `inc` (uint32) added to a histogram's low words at `at`
+    (where `there`) with the carry into its high words (`_count.add`), read from `lo`,
+    `hi` and written to `lo_out`, `hi_out`."""
+    low = plt.load(lo.at[at], mask=there, other=0)
+    high = plt.load(hi.at[at], mask=there, other=0)
+    plt.store(lo_out.at[at], low + inc, mask=there)
+    plt.store(hi_out.at[at], high + (inc > ~low).astype(jnp.uint32), mask=there)
 
 
 class HistRows(NamedTuple):
@@ -175,8 +181,4 @@ def add_counted_in_kernel(row, inc, lo, hi, lo_out, hi_out) -> None:
     there = c < slots
     # Entries left out are pointed past the row (Pallas' interpret mode writes them back).
     at = (jnp.broadcast_to(row, c.shape), jnp.where(there, c, slots))
-    low = plt.load(lo.at[at], mask=there, other=0)
-    high = plt.load(hi.at[at], mask=there, other=0)
-    add = inc.astype(jnp.uint32)
-    plt.store(lo_out.at[at], low + add, mask=there)
-    plt.store(hi_out.at[at], high + (add > ~low).astype(jnp.uint32), mask=there)
+    _add_with_carry(inc.astype(jnp.uint32), at, there, lo, hi, lo_out, hi_out)
