@@ -513,7 +513,9 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
         # of the batch (docs/benchmarks.md, "Per-group statistics"); otherwise XLA
         # scatters and the kernel adds the counts.
         here = listed and batch.grouped
-        hist_rows = tuple(_hists.HistRows.of(g, rows) for g in plan.hists) if here else ()
+        hist_rows = (
+            tuple(_hists.HistRows.of(g, where_of(g.rows)) for g in plan.hists) if here else ()
+        )
         hists = tuple(
             _hists.HistIn(
                 z if here else _hists.counted_selected(g, z, batch, plan.dtype), h.lo, h.hi

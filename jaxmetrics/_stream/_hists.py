@@ -133,11 +133,9 @@ class HistRows(NamedTuple):
     hi: np.ndarray
 
     @classmethod
-    def of(cls, g: HistGroup, rows: int) -> "HistRows":
-        """`g`'s rows among a batch of `rows` rows (`g.rows` are batch rows)."""
-        row = np.full(rows, -1, np.int32)
-        lo, hi = np.zeros(rows, np.float32), np.zeros(rows, np.float32)
-        row[list(g.rows)] = np.arange(len(g.rows), dtype=np.int32)
+    def of(cls, g: HistGroup, row: np.ndarray) -> "HistRows":
+        """`g` with `row`, its row of each batch row (`g.rows` are batch rows)."""
+        lo, hi = np.zeros(row.shape, np.float32), np.zeros(row.shape, np.float32)
         lo[list(g.rows)], hi[list(g.rows)] = g.lo, g.hi
         return cls(g.bins, row, lo, hi)
 
