@@ -40,12 +40,14 @@ class Chunking(NamedTuple):
     counted_here: bool
 
 
-def chunking(rows: int, batch: int, grouped: bool = False) -> Chunking:
+def chunking(rows: int, batch: int, grouped: bool, *, ranked: bool) -> Chunking:
     """How each of `rows` rows of `batch` entries is folded; `grouped`: the rows include
-    group rows. A row past `COUNTED_HERE` entries in chunks of 1,024 entries (2,048 past
-    16,384) whose partial statistics `fold` combines, counted by XLA: one program per long
-    row leaves most of the GPU idle, and smaller chunks make more programs and partial
-    statistics than the GPU gains from. A shorter one past `ONE_PROGRAM` in chunks of
+    group rows; `ranked`: with an EMA or a ring. A row past `COUNTED_HERE` entries in
+    chunks of 1,024 entries (2,048 past 16,384) whose partial statistics `fold` combines,
+    counted by XLA: one program per long row leaves most of the GPU idle, and smaller
+    chunks make more programs and partial statistics than the GPU gains from. Ungrouped
+    rows without ranks take chunks twice that size: they read no chunk counts, and with
+    fewer chunks less is left to combine. A shorter one past `ONE_PROGRAM` in chunks of
     1,024 where that makes at most `PROGRAMS` programs, each counting the row's mask
     itself: a program's time is mostly latency that grows with its entries, so ten rows
     of 4,096 run faster as forty programs. Group rows past `ALWAYS_CHUNKED` entries are
@@ -55,7 +57,7 @@ def chunking(rows: int, batch: int, grouped: bool = False) -> Chunking:
     programs of ungrouped rows run no faster than a hundred (docs/benchmarks.md,
     "Scaling" and "Per-group statistics")."""
     if batch > COUNTED_HERE:
-        size = 1024 if batch <= 16384 else 2048
+        size = (1024 if batch <= 16384 else 2048) * (1 if ranked or grouped else 2)
         return Chunking(size, -(-batch // size), False)
     n = -(-batch // ONE_PROGRAM)
     if n > 1 and rows * n <= PROGRAMS:
@@ -69,7 +71,7 @@ def reads_counts(rows: int, batch: int, grouped: bool, ranked: bool) -> bool:
     """Whether the kernel reads `chunk_counts` of its `rows` rows of `batch` entries: where
     they are chunked and not `counted_here`, for the ranks (`ranked`: with an EMA or a
     ring)."""
-    _, n, counted_here = chunking(rows, batch, grouped)
+    _, n, counted_here = chunking(rows, batch, grouped, ranked=ranked)
     return n > 1 and not counted_here and ranked
 
 

@@ -177,10 +177,10 @@ def add_with_counts(
 
 def _fold_rows(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, fused, interpret):
     """`_fold` of the rows `batch` selects, or where `fused`, the batch fits and the
-    spec has an EMA, a window or group rows, `_fold_fused`; `counted` is `[C, B]` (C up
-    to the plan's rows times the packs of `counts_width`). Ungrouped rows of the period
-    statistics alone are one XLA reduction, as fast as the kernel (docs/benchmarks.md)."""
-    kernel_serves = plan.ema_rows or plan.windows or batch.grouped
+    spec has an EMA, a window or group rows, or a batch past `REDUCED_BY_XLA` entries,
+    `_fold_fused`; `counted` is `[C, B]` (C up to the plan's rows times the packs of
+    `counts_width`)."""
+    kernel_serves = plan.ema_rows or plan.windows or batch.grouped or batch.batch > REDUCED_BY_XLA
     if kernel_serves and fused and _kernel.fits(batch.batch, plan.dtype):
         return _fold_fused(plan, s, batch, shift, counted, interpret)
     return _fold_dense(plan, s, batch, shift, counted)
@@ -273,6 +273,11 @@ def batch_two_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None
     return k, bsum, bmin, bmax, mb + (pivot - shift), m2b, bad, ema_sum, counted_sums
 
 
+REDUCED_BY_XLA = 4096
+"""Entries up to which ungrouped rows of the period statistics alone (no EMA, no window)
+are one XLA reduction (`batch_one_pass`), as fast as the kernel there; past it the
+kernel's chunks, which need no counts without ranks, are faster (docs/benchmarks.md,
+"Scaling")."""
 ONE_STAGE = 4096
 """Entries up to which `batch_one_pass` reduces a row in one stage."""
 PART = 256

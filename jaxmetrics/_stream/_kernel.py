@@ -153,8 +153,10 @@ def _kernel(
         ids_ref, *refs = refs
     if gather:
         listed_ref, reached_ref, *refs = refs
-    chunk, n_chunks, _ = (gather, 1, False) if gather else chunking(rows, batch, grouped)
     ranked = ema or bool(rings)
+    chunk, n_chunks, _ = (
+        (gather, 1, False) if gather else chunking(rows, batch, grouped, ranked=ranked)
+    )
     counts_ref = None
     if not gather and reads_counts(rows, batch, grouped, ranked):
         counts_ref, *refs = refs
@@ -487,7 +489,10 @@ def fold(
     rows, width = batch.rows, batch.batch
     gather = _reached.block(width) if listed else 0
     assert not hist_rows or (gather and len(hist_rows) == len(hists))
-    chunk, n_chunks, _ = (gather, 1, False) if gather else chunking(rows, width, batch.grouped)
+    ranked = ema is not None or bool(rings)
+    chunk, n_chunks, _ = (
+        (gather, 1, False) if gather else chunking(rows, width, batch.grouped, ranked=ranked)
+    )
     # The counted rows are summed over every entry, not the reached ones: read with the
     # batch, or where the rows are read from the lists, by the listing's kernel.
     counted_here = bool(packs and counted.shape[0]) and not listed
@@ -528,7 +533,7 @@ def fold(
     if gather:
         lists, counted_sums = _reached.reached(batch, counted if packs else counted[:0], interpret)
         args += [(a, whole(a)) for a in lists]
-    elif reads_counts(rows, width, batch.grouped, ema is not None or bool(rings)):
+    elif reads_counts(rows, width, batch.grouped, ranked):
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
     if counted_here:
         padded = counted_input(counted, batch.values.shape[0])

@@ -10,9 +10,9 @@ entry's index at its rank), every row of the batch, group rows and overall rows 
 is then read from its source row's list (`_kernel`, `gather`): as many entries as the
 list has, in the order of the batch, so that ranks, EMA weights and ring slots come out
 as from the batch itself. A step where every entry arrives lists them all, and the rows
-then read the whole batch. A batch past `LONG` entries is read from the lists with or
-without group rows: its rows then need no chunks, no chunk counts and no combination of
-the chunks' statistics.
+then read the whole batch. A batch with an EMA or a ring past `LONG` entries is read
+from the lists with or without group rows: its rows then need no chunks, no chunk counts
+and no combination of the chunks' statistics.
 """
 
 import functools
@@ -29,9 +29,9 @@ from ._selected import Selected
 CHUNK = 1024
 """Entries per program of the listing."""
 LONG = 32768
-"""Entries past which a batch without group rows is read from the lists (`listed`):
-at 65,536 entries its chunks' counts and combination cost more than the listing; at
-16,384 and 24,576 neither was faster."""
+"""Entries past which a batch without group rows but with ranks is read from the lists
+(`listed`): at 65,536 entries its chunks' counts and combination cost more than the
+listing; at 16,384 and 24,576 neither was faster."""
 ROWS = 64
 """Group rows without ranks from which a batch of up to `_chunks.COUNTED_HERE` entries
 reads them from the lists (`listed`)."""
@@ -52,11 +52,14 @@ def listed(rows: int, batch: int, ranked: bool) -> bool:
     (every row of it); `ranked`: with an EMA or a ring. Group rows with ranks always are
     (from the batch, every chunk of a row counts the row's arrivals around it), and so
     are group rows past `_chunks.COUNTED_HERE` entries (from the batch, their chunks are
-    counted by XLA first) and any batch past `LONG` entries. The period statistics of
+    counted by XLA first) and ranked batches past `LONG` entries. The period statistics of
     fewer than `ROWS` group rows over a smaller batch fold their chunks from the batch
-    at less than the listing's two kernels cost (docs/benchmarks.md, "Per-group
-    statistics" and "Scaling")."""
-    return batch > LONG or (rows > 0 and (ranked or batch > COUNTED_HERE or rows >= ROWS))
+    at less than the listing's two kernels cost, and ungrouped ones at any size, their
+    chunks needing no counts (docs/benchmarks.md, "Per-group statistics" and
+    "Scaling")."""
+    if rows == 0:
+        return ranked and batch > LONG
+    return ranked or batch > COUNTED_HERE or rows >= ROWS
 
 
 def block(batch: int) -> int:

@@ -442,7 +442,7 @@ def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     # and the ring writes across blocks, against the same loop.
     from jaxmetrics._stream import _chunks, _kernel
 
-    assert _chunks.chunking(rows, batch) == (batch, 1, False)
+    assert _chunks.chunking(rows, batch, False, ranked=True) == (batch, 1, False)
     assert _kernel.blocking(batch)[1] == 2
     check_fused_kernel(rows, batch, size, seed)
 
@@ -469,8 +469,30 @@ def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
     # against the same loop.
     from jaxmetrics._stream import _chunks
 
-    assert _chunks.chunking(rows, batch)[1] > 1
+    assert _chunks.chunking(rows, batch, False, ranked=True)[1] > 1
     check_fused_kernel(rows, batch, size, seed)
+
+
+@pytest.mark.parametrize(
+    ("rows", "batch", "size", "chunks", "seed"),
+    # Masks 50% full, full, 2% full, 50% full, drawn per 1,024 entries at 65,536.
+    [
+        (2, 8192, 2048, 4, 3),
+        (1, 16385, 4096, 5, 1),
+        (3, 24577, 4096, 7, 4),
+        (1, 65536, 4096, 16, 2),
+    ],
+)
+def test_fused_kernel_folds_long_rows_without_ranks_in_larger_chunks(
+    rows, batch, size, chunks, seed
+):
+    # Ungrouped period statistics (no EMA, no ring) need no chunk counts: chunks twice
+    # the ranked rows' size, the last one overlapping the one before where they do not
+    # divide the row (16,385 and 24,577), their moments combined; against the loop.
+    from jaxmetrics._stream import _chunks
+
+    assert _chunks.chunking(rows, batch, False, ranked=False) == (size, chunks, False)
+    check_fused_kernel(rows, batch, 3, seed, ranked=False, pieces=1024 if batch > 60000 else None)
 
 
 @pytest.mark.parametrize(
@@ -600,7 +622,10 @@ def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chu
     # larger than several.
     from jaxmetrics._stream import _chunks
 
-    assert _chunks.chunking(rows, batch)[1:] == (chunks, chunks > 1 and batch <= 4096)
+    assert _chunks.chunking(rows, batch, False, ranked=True)[1:] == (
+        chunks,
+        chunks > 1 and batch <= 4096,
+    )
     check_fused_kernel(rows, batch, size, seed, pieces=1024)
 
 
@@ -751,6 +776,29 @@ def test_fused_kernel_serves_float32_batches_of_32_to_65536(monkeypatch, num_env
     assert ("pallas_call" in str(jaxpr)) == fused
 
 
+@pytest.mark.parametrize(
+    ("num_envs", "ema", "kernels"),
+    [(4096, False, 0), (4097, False, 1), (65536, False, 1), (4096, True, 1), (65536, True, 2)],
+)
+def test_period_statistics_alone_fold_in_the_kernel_past_4096_envs_without_lists(
+    monkeypatch, num_envs, ema, kernels
+):
+    # Ungrouped period statistics are XLA's one reduction up to 4,096 envs and the
+    # kernel's past it, whose chunks need no lists of reached entries at any size (one
+    # Pallas call); with an EMA the kernel serves every size, and past 32,768 envs
+    # reads the rows from the lists (a second call, the listing's).
+    from jaxmetrics import _stream
+
+    fold = _stream.add_with_counts
+    monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
+    stats = ("mean", "std", "min", "max", jm.histogram(10, (0.0, 1.0)))
+    term = jm.Term(lambda x: x, reduce="mean", stats=stats + ((jm.ema(0.1),) if ema else ()))
+    metrics = jm.Metrics(terms={"a": term, "b": jm.Term(lambda x: 2 * x, reduce="sum")})
+    x, done = jnp.zeros(num_envs, jnp.float32), jnp.zeros(num_envs, bool)
+    jaxpr = str(jax.make_jaxpr(metrics.update)(metrics.init(num_envs), x, done))
+    assert jaxpr.count("pallas_call") == kernels
+
+
 @pytest.mark.parametrize(("num_envs", "groups"), [(300, 0), (4097, 0), (300, 2)])
 def test_fused_kernel_carries_histogram_counts_into_the_high_word(monkeypatch, num_envs, groups):
     # A histogram's counts are two uint32 words: the kernel adds a step's counts to the
@@ -811,7 +859,8 @@ def test_fused_kernel_carries_histogram_counts_into_the_high_word(monkeypatch, n
     [(64, 30, 0, True, False), (300, 10, 0, True, False), (3000, 10, 0, True, False)]
     + [(4097, 10, 0, True, False), (12288, 10, 0, True, False), (300, 10, 3, True, False)]
     + [(4097, 10, 3, True, False), (300, 10, 3, False, False), (4097, 10, 3, False, False)]
-    + [(300, 10, 3, True, True), (4097, 10, 3, False, True), (4097, 10, 0, True, True)],
+    + [(300, 10, 3, True, True), (4097, 10, 3, False, True), (4097, 10, 0, True, True)]
+    + [(12288, 10, 0, False, False)],
 )
 def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     monkeypatch, num_envs, steps, groups, ranked, listed
@@ -823,7 +872,8 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     # are taken in another order). Batches of one block, of two, and of several chunks;
     # with `groups`, each metric also per group (indices out of range included), its
     # group rows read by the kernel from the ungrouped batch; not `ranked`: the period
-    # statistics only, which the kernel folds for group rows; `listed`: the rows read
+    # statistics only, which the kernel folds for group rows and past 4,096 envs; `listed`:
+    # the rows read
     # from the lists of reached entries (`_reached`, with group rows or past 32,768
     # envs without), else from the batch.
     from jaxmetrics import _stream
@@ -838,7 +888,8 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
         "d": ("min", jm.histogram(40, (-2.0, 2.0))),
     }
     if not ranked:
-        stats = {"a": ("mean", "sum"), "b": ("std", "min"), "c": ("max",), "d": ("min",)}
+        stats = {"a": ("mean", "sum"), "b": ("std", "min"), "c": ("max",)}
+        stats["d"] = ("min", jm.histogram(40, (-2.0, 2.0)))
         # As rows, as on a GPU at these sizes: a CPU takes them as segments, no kernel.
         monkeypatch.setattr(_stream.SegmentPlan, "serves", lambda *_: False)
     names = tuple(f"g{i}" for i in range(groups))

@@ -49,6 +49,8 @@ def _spec(features: str, groups: int) -> jm.Metrics:
         (4096, 64, "full"),
         (1024, 2, "simple"),  # group rows of period statistics, from the batch
         (4096, 8, "simple"),
+        (24577, 0, "simple"),  # period statistics alone: chunks of 4,096, the last overlapping
+        (65536, 0, "simple"),
     ],
 )
 def test_fused_kernels_lower_to_triton_for_cuda(monkeypatch, num_envs, groups, features):
