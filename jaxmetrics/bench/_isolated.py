@@ -44,6 +44,17 @@ def _floor_scan(num_terms: int):
     return run
 
 
+def _layout_floor_scan(num_terms: int):
+    def run(state, xs, dones):
+        def body(s, inp):
+            values = wl.random_values(inp[0], num_terms)
+            return wl.layout_floor_update(s, values, inp[1]), None
+
+        return jax.lax.scan(body, state, (xs, dones))[0]
+
+    return run
+
+
 def _prepare(name: str, fn, state, xs, dones, hlo_dir: str | None) -> tuple[Variant, dict]:
     compiled, compile_s = compile_jit(fn, state, xs, dones)
     text = compiled.as_text()
@@ -183,16 +194,23 @@ def scaling(
             "ns/env/step",
             "state bytes",
             "floor state bytes",
+            "layout floor us/step",
+            "layout x floor",
         ],
     )
     for n in env_list:
         xs, dones = inputs(n, steps)
         full, simple = wl.random_spec(10), wl.random_spec(10, features="simple")
         vf, _ = _prepare("floor", _floor_scan(10), wl.floor_init(10, n), xs, dones, None)
+        vl, _ = _prepare(
+            "layout", _layout_floor_scan(10), wl.layout_floor_init(10, n), xs, dones, None
+        )
         vj, ij = _prepare("jaxmetrics", _metrics_scan(full), full.init(n), xs, dones, None)
         vs, _ = _prepare("simple", _metrics_scan(simple), simple.init(n), xs, dones, None)
-        tm, _ = measure([vf, vj, vs], repeats)
-        f_us, j_us, s_us = (tm[k].median_s / steps * 1e6 for k in ("floor", "jaxmetrics", "simple"))
+        tm, _ = measure([vf, vl, vj, vs], repeats)
+        f_us, l_us, j_us, s_us = (
+            tm[k].median_s / steps * 1e6 for k in ("floor", "layout", "jaxmetrics", "simple")
+        )
         envs.add(
             n,
             f_us,
@@ -203,11 +221,19 @@ def scaling(
             j_us * 1e3 / n,
             ij["state_bytes"],
             tree_bytes(wl.floor_init(10, n)),
+            l_us,
+            l_us / f_us,
         )
         del xs, dones
     envs.notes.append(
         "jaxmetrics: the full 10-term spec; simple stats: the same terms with their period "
         "statistics only (count, mean, sum, std, min, max), no EMA, window or histogram."
+    )
+    envs.notes.append(
+        "layout floor: the floor over jaxmetrics' running-episode layout, three [10, envs] "
+        "accumulators (a step count and two float slots) updated per step, here a Welford "
+        "mean and M2, and the finished episodes' means summed: what the state's layout costs "
+        "with no statistic folded beyond the floor's."
     )
 
     terms = Table(

@@ -115,6 +115,49 @@ def floor_update(s: FloorState, values: jax.Array, done: jax.Array) -> FloorStat
     return FloorState(jnp.where(d, 0.0, ep), total, episodes)
 
 
+class LayoutFloorState(NamedTuple):
+    """The floor over jaxmetrics' episode layout: the three `[M, E]` accumulators of
+    `jaxmetrics._episode.EpisodeState` (a step count and two float slots), here a
+    Welford mean and M2 per episode, and the finished episodes' means summed."""
+
+    steps: jax.Array  # [M, E] int32
+    mean: jax.Array  # [M, E] float32: running episode means
+    m2: jax.Array  # [M, E] float32: their sums of squared deviations
+    total: jax.Array  # [M] float32: sum of finished episodes' means
+    episodes: jax.Array  # [] int32: finished episodes
+
+
+def layout_floor_init(num_metrics: int, num_envs: int) -> LayoutFloorState:
+    shape = (num_metrics, num_envs)
+    zeros = jnp.zeros(shape, jnp.float32)
+    return LayoutFloorState(
+        jnp.zeros(shape, jnp.int32),
+        zeros,
+        zeros,
+        jnp.zeros((num_metrics,), jnp.float32),
+        jnp.zeros((), jnp.int32),
+    )
+
+
+def layout_floor_update(
+    s: LayoutFloorState, values: jax.Array, done: jax.Array
+) -> LayoutFloorState:
+    steps = s.steps + 1
+    delta = values.astype(jnp.float32) - s.mean
+    mean = s.mean + delta / steps.astype(jnp.float32)
+    m2 = s.m2 + delta * (values - mean)
+    d = done.astype(jnp.bool_)[None, :]
+    total = s.total + jnp.sum(jnp.where(d, mean, 0.0), axis=1)
+    episodes = s.episodes + jnp.sum(done.astype(jnp.int32))
+    return LayoutFloorState(
+        jnp.where(d, 0, steps),
+        jnp.where(d, 0.0, mean),
+        jnp.where(d, 0.0, m2),
+        total,
+        episodes,
+    )
+
+
 def sum_metrics(metrics: jm.Metrics) -> list[int]:
     """Indices (in definition order) of the sum-reduced metrics: those the floor matches."""
     return [i for i, s in enumerate(metrics.metric_specs.values()) if s.reduce == "sum"]

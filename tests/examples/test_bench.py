@@ -134,6 +134,8 @@ def test_rows_cover_the_requested_sizes(result):
     # The simple statistics timed beside the full spec, at every size.
     simple = sc["scaling_envs"]["columns"].index("simple x floor")
     assert all(r[simple] > 0 for r in sc["scaling_envs"]["rows"])
+    layout = sc["scaling_envs"]["columns"].index("layout x floor")
+    assert all(r[layout] > 0 for r in sc["scaling_envs"]["rows"])
     wstate = [r[3] for r in sc["scaling_window"]["rows"]]
     # two windowed rows; a slot holds a float32 value and its uint32 arrival step
     assert wstate[1] - wstate[0] == 2 * (16 - 4) * (4 + 4)
@@ -182,6 +184,37 @@ def test_isolated_floor_and_jaxmetrics_match_a_float64_reference(result):
         want, _ = _episode_sums_f64(xs, dones, row)
         np.testing.assert_allclose(check["jaxmetrics_sums"][name], want, rtol=1e-6)
         np.testing.assert_allclose(check["floor_totals"][name], want, rtol=1e-5)
+
+
+def test_layout_floor_sums_the_finished_episodes_means():
+    # The scaling table's layout floor does the work it stands for: per env a Welford
+    # mean and M2 over the running episode's steps, and the finished episodes' means
+    # summed per metric; against float64 numpy, step by step.
+    import jax
+
+    from jaxmetrics.bench import _workload as wl
+
+    xs, dones = (np.asarray(a, np.float64) for a in _isolated.inputs(NUM_ENVS, STEPS))
+    state = wl.layout_floor_init(3, NUM_ENVS)
+    update = jax.jit(wl.layout_floor_update)
+    want = np.zeros(3)
+    start = np.zeros(NUM_ENVS, int)
+    checked = 0
+    for t in range(STEPS):
+        done = dones[t].astype(bool)
+        state = update(state, xs[t, :3].astype(np.float32), done)
+        for e in range(NUM_ENVS):
+            seen = xs[start[e] : t + 1, :3, e]
+            if done[e]:
+                want += seen.mean(axis=0)
+                start[e] = t + 1
+            elif len(seen) > 1:
+                got = np.asarray(state.m2)[:, e], np.asarray(state.mean)[:, e]
+                np.testing.assert_allclose(got[0], ((seen - seen.mean(0)) ** 2).sum(0), rtol=1e-4)
+                np.testing.assert_allclose(got[1], seen.mean(0), rtol=1e-5)
+                checked += 1
+    assert checked > 0 and int(state.episodes) == int(dones.sum()) > 0
+    np.testing.assert_allclose(np.asarray(state.total), want, rtol=1e-5)
 
 
 @pytest.mark.slow
