@@ -139,6 +139,20 @@ def layout_floor_init(num_metrics: int, num_envs: int) -> LayoutFloorState:
     )
 
 
+def _row_sums(a: jax.Array) -> jax.Array:
+    """`a[M, E]` summed over E, past 4,096 entries in parts of 256 and then the parts:
+    XLA gives a row of 8,192 or 16,384 entries, summed whole in the accumulators' kernel,
+    one program (as it did `jaxmetrics._stream.batch_one_pass`, which reduces the same
+    way). The barrier keeps XLA from merging the two sums back into one."""
+    rows, width = a.shape
+    if width <= 4096:
+        return jnp.sum(a, axis=1)
+    parts = -(-width // 256)
+    padded = jnp.pad(a, ((0, 0), (0, parts * 256 - width)))
+    partial = jax.lax.optimization_barrier(jnp.sum(padded.reshape(rows, parts, 256), axis=2))
+    return jnp.sum(partial, axis=1)
+
+
 def layout_floor_update(
     s: LayoutFloorState, values: jax.Array, done: jax.Array
 ) -> LayoutFloorState:
@@ -147,7 +161,7 @@ def layout_floor_update(
     mean = s.mean + delta / steps.astype(jnp.float32)
     m2 = s.m2 + delta * (values - mean)
     d = done.astype(jnp.bool_)[None, :]
-    total = s.total + jnp.sum(jnp.where(d, mean, 0.0), axis=1)
+    total = s.total + _row_sums(jnp.where(d, mean, 0.0))
     episodes = s.episodes + jnp.sum(done.astype(jnp.int32))
     return LayoutFloorState(
         jnp.where(d, 0, steps),

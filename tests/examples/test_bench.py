@@ -215,6 +215,9 @@ def test_layout_floor_sums_the_finished_episodes_means():
                 checked += 1
     assert checked > 0 and int(state.episodes) == int(dones.sum()) > 0
     np.testing.assert_allclose(np.asarray(state.total), want, rtol=1e-5)
+    # Past 4,096 envs it sums in parts (padded where they do not divide the envs).
+    wide = np.random.default_rng(0).random((3, 5000)).astype(np.float32)
+    np.testing.assert_allclose(wl._row_sums(wide), wide.sum(axis=1, dtype=np.float64), rtol=1e-6)
 
 
 @pytest.mark.slow
