@@ -25,6 +25,10 @@ from ._selected import Selected
 ONE_PROGRAM = 1024
 COUNTED_HERE = 4096
 PROGRAMS = 128
+LONG_COUNTED_HERE = 16384
+"""Entries up to which the chunks of ungrouped rows with ranks count the row's mask
+themselves past `COUNTED_HERE`, where that makes at most `LONG_PROGRAMS` programs."""
+LONG_PROGRAMS = 160
 ALWAYS_CHUNKED = 2048
 COMBINED_BY_REDUCTIONS = 256
 """Rows from which `combine` reduces over the chunks (else folds them elementwise)."""
@@ -46,8 +50,11 @@ def chunking(rows: int, batch: int, grouped: bool, *, ranked: bool) -> Chunking:
     chunks of 1,024 entries (2,048 past 16,384) whose partial statistics `fold` combines,
     counted by XLA: one program per long row leaves most of the GPU idle, and smaller
     chunks make more programs and partial statistics than the GPU gains from. Ungrouped
-    rows without ranks take chunks twice that size: they read no chunk counts, and with
-    fewer chunks less is left to combine. A shorter one past `ONE_PROGRAM` in chunks of
+    rows with ranks up to `LONG_COUNTED_HERE` entries count them themselves where that
+    makes at most `LONG_PROGRAMS` programs: the row's mask read by each of its chunks
+    costs less than XLA's kernel of chunk counts there, and more past it. Ungrouped rows
+    without ranks take chunks twice that size: they read no chunk counts, and with fewer
+    chunks less is left to combine. A shorter one past `ONE_PROGRAM` in chunks of
     1,024 where that makes at most `PROGRAMS` programs, each counting the row's mask
     itself: a program's time is mostly latency that grows with its entries, so ten rows
     of 4,096 run faster as forty programs. Group rows past `ALWAYS_CHUNKED` entries are
@@ -58,7 +65,9 @@ def chunking(rows: int, batch: int, grouped: bool, *, ranked: bool) -> Chunking:
     "Scaling" and "Per-group statistics")."""
     if batch > COUNTED_HERE:
         size = (1024 if batch <= 16384 else 2048) * (1 if ranked or grouped else 2)
-        return Chunking(size, -(-batch // size), False)
+        n = -(-batch // size)
+        itself = batch <= LONG_COUNTED_HERE and rows * n <= LONG_PROGRAMS
+        return Chunking(size, n, ranked and not grouped and itself)
     n = -(-batch // ONE_PROGRAM)
     if n > 1 and rows * n <= PROGRAMS:
         return Chunking(ONE_PROGRAM, n, True)

@@ -596,36 +596,38 @@ def test_reached_entries_are_listed_in_order_and_counted_rows_summed(sources, ba
 
 
 @pytest.mark.parametrize(
-    ("rows", "batch", "size", "seed", "chunks"),
+    ("rows", "batch", "size", "seed", "chunks", "itself"),
     [
-        (1, 4096, 16, 0, 4),
-        (1, 4096, 3000, 1, 4),
-        (3, 3000, 1100, 2, 3),
-        (7, 1025, 5, 3, 2),
-        (2, 2048, 1, 4, 2),
-        (1, 1024, 16, 5, 1),
-        (10, 4096, 16, 6, 4),
-        (32, 4096, 3, 9, 4),
-        (33, 4096, 3, 10, 1),
-        (42, 3000, 3, 11, 3),
-        (43, 3000, 3, 12, 1),
-        (1, 4097, 2000, 7, 5),
-        (2, 24577, 5000, 8, 13),
+        (1, 4096, 16, 0, 4, True),
+        (1, 4096, 3000, 1, 4, True),
+        (3, 3000, 1100, 2, 3, True),
+        (7, 1025, 5, 3, 2, True),
+        (2, 2048, 1, 4, 2, True),
+        (1, 1024, 16, 5, 1, False),
+        (10, 4096, 16, 6, 4, True),
+        (32, 4096, 3, 9, 4, True),
+        (33, 4096, 3, 10, 1, False),
+        (42, 3000, 3, 11, 3, True),
+        (43, 3000, 3, 12, 1, False),
+        (1, 4097, 2000, 7, 5, True),
+        (2, 12289, 5000, 13, 13, True),
+        (13, 12288, 3, 14, 12, True),
+        (14, 12288, 3, 15, 12, False),
+        (2, 24577, 5000, 8, 13, False),
     ],
 )
-def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chunks):
+def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chunks, itself):
     # Past 1,024 entries a row is chunked (up to 4,096 entries, while that makes at most
-    # 128 programs); up to 4,096 each chunk's program counts the row's mask around it
-    # itself (in one block, or two at 3,000 and 1,025), past that (4,097) it reads the
-    # chunks' counts. Masks drawn per 1,024 entries as empty, full or
-    # in between, so that whole chunks are empty or full; rings smaller than a chunk, and
-    # larger than several.
+    # 128 programs); each chunk's program counts the row's mask around it itself (in one
+    # block, or two at 3,000, 1,025, 4,097 and 12,289) up to 4,096 entries, and up to
+    # 16,384 while that makes at most 160 programs (13 rows of 12 chunks, not 14); past
+    # that (24,577) it reads the chunks' counts. Masks drawn per 1,024 entries as empty,
+    # full or in between, so that whole chunks are empty or full; rings smaller than a
+    # chunk, and larger than several.
     from jaxmetrics._stream import _chunks
 
-    assert _chunks.chunking(rows, batch, False, ranked=True)[1:] == (
-        chunks,
-        chunks > 1 and batch <= 4096,
-    )
+    got = _chunks.chunking(rows, batch, False, ranked=True)
+    assert (got.n, got.counted_here) == (chunks, itself)
     check_fused_kernel(rows, batch, size, seed, pieces=1024)
 
 

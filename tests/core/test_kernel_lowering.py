@@ -42,8 +42,9 @@ def _spec(features: str, groups: int) -> jm.Metrics:
     [
         (256, 0, "full"),  # one program per row
         (3000, 0, "full"),  # chunks that count the row's mask, two blocks each
-        (4097, 0, "full"),  # chunks counted by XLA, the last one overlapping
-        (24576, 0, "full"),  # chunks of 2,048
+        (4097, 0, "full"),  # chunks that count the row's mask, the last one overlapping
+        (12288, 0, "full"),  # the same, the mask read in two blocks of 8,192
+        (24576, 0, "full"),  # chunks of 2,048 counted by XLA
         (65536, 0, "full"),  # rows read from the lists
         (300, 3, "full"),  # group rows from the lists, histograms counted in the kernel
         (4096, 64, "full"),
