@@ -116,17 +116,22 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
     (slot 6) are taken off a pivot every chunk of the row shares (slot 7), near them:
     the sum of their squares does not cancel, and one pass takes it.
 
-    Written as elementwise folds over the n chunks, not as reductions: XLA then computes
-    them in the kernel that updates the per-row state, where reductions over the chunk
-    axis were kernels of their own (two more per step). From `COMBINED_BY_REDUCTIONS`
-    rows on (group rows) as reductions: that kernel's fold over 16 chunks of hundreds of
-    rows took longer than the two reductions (docs/benchmarks.md)."""
+    Written as elementwise, pairwise combinations of the n chunks, not as reductions: XLA
+    then computes them in the kernel that updates the per-row state, where reductions over
+    the chunk axis were kernels of their own (two more per step). From
+    `COMBINED_BY_REDUCTIONS` rows on (group rows) as reductions: that kernel's fold over 16
+    chunks of hundreds of rows took longer than the two reductions (docs/benchmarks.md)."""
     by_reductions = floats.shape[0] >= COMBINED_BY_REDUCTIONS
 
     def over_chunks(op, reduce, a):
         if by_reductions:
             return reduce(a, axis=1)
-        return functools.reduce(op, [a[:, j] for j in range(a.shape[1])])
+        # Pairwise: each thread's chain over the chunks is log2(n) ops deep, not n.
+        parts = [a[:, j] for j in range(a.shape[1])]
+        while len(parts) > 1:
+            pairs = range(0, len(parts) - 1, 2)
+            parts = [op(parts[j], parts[j + 1]) for j in pairs] + parts[len(parts) & ~1 :]
+        return parts[0]
 
     total = functools.partial(over_chunks, jnp.add, jnp.sum)
 
