@@ -141,9 +141,9 @@ def layout_floor_init(num_metrics: int, num_envs: int) -> LayoutFloorState:
 
 def _row_sums(a: jax.Array) -> jax.Array:
     """`a[M, E]` summed over E, past 4,096 entries in parts of 256 and then the parts:
-    XLA gives a row of 8,192 or 16,384 entries, summed whole in the accumulators' kernel,
-    one program (as it did `jaxmetrics._stream.batch_one_pass`, which reduces the same
-    way). The barrier keeps XLA from merging the two sums back into one."""
+    summed whole in the accumulators' kernel, a row of 8,192 or 16,384 entries is one
+    program of XLA's (as it was in `jaxmetrics._stream.batch_one_pass`, which reduces the
+    same way). The barrier keeps XLA from merging the two sums back into one."""
     rows, width = a.shape
     if width <= 4096:
         return jnp.sum(a, axis=1)
@@ -157,9 +157,10 @@ def layout_floor_update(
     s: LayoutFloorState, values: jax.Array, done: jax.Array
 ) -> LayoutFloorState:
     steps = s.steps + 1
-    delta = values.astype(jnp.float32) - s.mean
+    x = values.astype(jnp.float32)
+    delta = x - s.mean
     mean = s.mean + delta / steps.astype(jnp.float32)
-    m2 = s.m2 + delta * (values - mean)
+    m2 = s.m2 + delta * (x - mean)
     d = done.astype(jnp.bool_)[None, :]
     total = s.total + _row_sums(jnp.where(d, mean, 0.0))
     episodes = s.episodes + jnp.sum(done.astype(jnp.int32))
