@@ -34,21 +34,13 @@ def _metrics_scan(metrics):
     return run
 
 
-def _floor_scan(num_terms: int):
+def _floor_scan(num_terms: int, update=wl.floor_update):
+    """A scan of a hand-written floor's `update` (`wl.floor_update`, or the layout
+    floor's) over the step inputs."""
+
     def run(state, xs, dones):
         def body(s, inp):
-            return wl.floor_update(s, wl.random_values(inp[0], num_terms), inp[1]), None
-
-        return jax.lax.scan(body, state, (xs, dones))[0]
-
-    return run
-
-
-def _layout_floor_scan(num_terms: int):
-    def run(state, xs, dones):
-        def body(s, inp):
-            values = wl.random_values(inp[0], num_terms)
-            return wl.layout_floor_update(s, values, inp[1]), None
+            return update(s, wl.random_values(inp[0], num_terms), inp[1]), None
 
         return jax.lax.scan(body, state, (xs, dones))[0]
 
@@ -202,9 +194,8 @@ def scaling(
         xs, dones = inputs(n, steps)
         full, simple = wl.random_spec(10), wl.random_spec(10, features="simple")
         vf, _ = _prepare("floor", _floor_scan(10), wl.floor_init(10, n), xs, dones, None)
-        vl, _ = _prepare(
-            "layout", _layout_floor_scan(10), wl.layout_floor_init(10, n), xs, dones, None
-        )
+        layout = _floor_scan(10, wl.layout_floor_update)
+        vl, _ = _prepare("layout", layout, wl.layout_floor_init(10, n), xs, dones, None)
         vj, ij = _prepare("jaxmetrics", _metrics_scan(full), full.init(n), xs, dones, None)
         vs, _ = _prepare("simple", _metrics_scan(simple), simple.init(n), xs, dones, None)
         tm, _ = measure([vf, vl, vj, vs], repeats)
