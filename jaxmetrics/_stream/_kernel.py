@@ -76,21 +76,21 @@ class RingIn(NamedTuple):
 class Table:
     """The columns of a batch row's static ints (`fold`'s `table`, `[R, n]` int32): the
     EMA coefficient's float32 bits, the row's source row, grouping (-1: none) and group
-    (`Selected`), its counted row per pack (-1: none), then each ring's `row` and
-    `pos_row` (`RingIn`), then each histogram's row and the float32 bits of its range
-    where the kernel counts them (`HistRows`)."""
+    (`Selected`), then each ring's `row` and `pos_row` (`RingIn`), then each
+    histogram's row and the float32 bits of its range where the kernel counts them
+    (`HistRows`)."""
 
-    COEFF, SRC, KIND, GROUP, COUNTED = range(5)
+    COEFF, SRC, KIND, GROUP = range(4)
 
     @staticmethod
-    def ring(packs: int, i: int) -> int:
+    def ring(i: int) -> int:
         """The column of ring `i`'s `row` (its `pos_row` follows)."""
-        return Table.COUNTED + packs + 2 * i
+        return Table.GROUP + 1 + 2 * i
 
     @staticmethod
-    def hist(packs: int, rings: int, i: int) -> int:
+    def hist(rings: int, i: int) -> int:
         """The column of histogram `i`'s row (its `lo` and `hi` bits follow)."""
-        return Table.ring(packs, rings) + 3 * i
+        return Table.ring(rings) + 3 * i
 
 
 class EmaIn(NamedTuple):
@@ -107,25 +107,27 @@ def _kernel(
     ema: bool,
     rings: tuple[int, ...],
     packs: int,
-    counted: bool,
+    counted: int,
     rows: int,
     batch: int,
     grouped: bool,
     gather: int = 0,
     hists: int = 0,
     hist_bins: tuple[int, ...] = (),
+    sources: bool = False,
 ):
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
-    sizes, `packs` the counted rows per batch row (`counted`: read from a counted input;
-    else none has any). `table` holds the row's static ints (`Table`); `counts`
-    (`reads_counts`) the row's masked-in entries per chunk.
+    sizes, `packs` the counted rows per batch row (of the first `counted` rows of a
+    counted input, row `p * rows + r` in pack p of row r; 0: none has any). `table` holds
+    the row's static ints (`Table`); `counts` (`reads_counts`) the row's masked-in entries
+    per chunk; `sources`: row r is source row r, ungrouped.
 
     The row is read from its source row of the batch (`Selected`), with its mask built
     as it is read: the source's mask and, for a group row (`grouped`), its group index
     equal to the row's group; its non-finite flags count in the same group. With
     `gather` (one program per row, no counted row), at the entries of its source row's
-    list (`listed`, `[S, W]`; its length the sum of `reached`'s row, `_reached.Reached`)
-    in blocks of `gather` entries, in entry order: ranks, EMA weights and ring slots come
+    list (`listed`, `[S, W]`, placed by `reached`'s chunk counts, `_reached.Reached`) in
+    blocks of `gather` entries, in entry order: ranks, EMA weights and ring slots come
     out as from the batch.
 
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
@@ -173,8 +175,12 @@ def _kernel(
     def entry(col: int) -> jax.Array:
         return table[0, col]
 
-    src, kind, group = entry(Table.SRC), entry(Table.KIND), entry(Table.GROUP)
-    counted_rows = [entry(Table.COUNTED + p) for p in range(packs)]
+    # Where each row is its own source row (`sources`), the row's reads take its source
+    # from the program's id, not from the table in memory, which they would wait for.
+    r = pl.program_id(0)
+    src = r if sources else entry(Table.SRC)
+    kind, group = entry(Table.KIND), entry(Table.GROUP)
+    counted_rows = [jnp.where(r + rows * p < counted, r + rows * p, -1) for p in range(packs)]
 
     def reader(
         start, n: int, fresh, cols=None
@@ -305,15 +311,27 @@ def _kernel(
         fold_blocks(blocks, lambda: [values() for _, values in loaded])
 
     def fold_listed():
-        # The row read from its source row's list of reached entries (`_reached`): in one
+        # The row read from its source row's list of reached entries (`_reached`), whose
+        # chunks' counts place the list's k-th entry: in the segment of the first chunk
+        # whose counts up to it pass k, at k less the entries of the chunks before. In one
         # block of `gather` entries at most steps, loaded once for every pass; else in
-        # blocks of a listing chunk, loaded by each pass.
-        src_row = pl.ds(src, 1)
-        length = jnp.sum(reached_ref[src_row, :])
+        # blocks of that size, loaded by each pass.
+        chunks = reached_ref.shape[1]
+        c = jax.lax.broadcasted_iota(jnp.int32, (pl.next_power_of_2(chunks), 1), 0)
+        at_src = jnp.broadcast_to(src, c.shape)
+        counts = plt.load(reached_ref.at[at_src, c], mask=c < chunks, other=0)
+        ends = jnp.cumsum(counts, axis=0)
+        length = jnp.sum(counts)
+        segment = _reached.chunk(batch)
 
         def block(start, n: int):
-            there = jax.lax.broadcasted_iota(jnp.int32, (1, n), 1) + start < length
-            cols = plt.load(listed_ref.at[src_row, pl.ds(start, n)], mask=there, other=0)
+            k = jax.lax.broadcasted_iota(jnp.int32, (1, n), 1) + start
+            there = k < length
+            before = ends <= k  # [chunks, n]: the chunks wholly before entry k
+            seg = jnp.sum(before.astype(jnp.int32), axis=0, keepdims=True)
+            rank = k - jnp.sum(jnp.where(before, counts, 0), axis=0, keepdims=True)
+            at = jnp.where(there, seg * segment + rank, 0)
+            cols = plt.load(listed_ref.at[jnp.broadcast_to(src, k.shape), at], mask=there, other=0)
             return read(None, n, there, cols)
 
         def one_block():
@@ -335,7 +353,7 @@ def _kernel(
 
             fold_blocks(blocks, lambda: True)
 
-        jax.lax.cond(length <= chunk, one_block, lambda: blocks_of(_reached.chunk(batch)))
+        jax.lax.cond(length <= chunk, one_block, lambda: blocks_of(chunk))
 
     def fold_blocks(blocks, values_of):
         """The row's statistics folded over its blocks: `blocks(body, init, xs, *extra)`
@@ -376,7 +394,7 @@ def _kernel(
             seeding = ~seeded & (c > 0)
         ring_at = []
         for i, size in enumerate(rings):
-            at = Table.ring(packs, i)
+            at = Table.ring(i)
             row = table[:, at : at + 1]  # [1, 1]
             pos_row = jnp.maximum(table[:, at + 1 : at + 2], 0)
             pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
@@ -422,7 +440,7 @@ def _kernel(
 
         write(*jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty), total, nbad, csums)
         for i, bins in enumerate(hist_bins):
-            at = Table.hist(packs, len(rings), i)
+            at = Table.hist(len(rings), i)
             words = (*hist_in[3 * i + 1 : 3 * i + 3], *hist_out[3 * i + 1 : 3 * i + 3])
             spec = tuple(table[:, j : j + 1] for j in range(at, at + 3))
             count_in_kernel(bins, spec, blocks, values_of, total, words)
@@ -497,10 +515,7 @@ def fold(
     # batch, or where the rows are read from the lists, by the listing's kernel.
     counted_here = bool(packs and counted.shape[0]) and not listed
     coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
-    at = np.arange(rows, dtype=np.int32)[:, None] + rows * np.arange(packs, dtype=np.int32)
-    table = [coeff.view(np.int32)[:, None], batch.table(), np.where(at < counted.shape[0], at, -1)]
-    if not counted_here:
-        table[-1] = np.full_like(at, -1)
+    table = [coeff.view(np.int32)[:, None], batch.table()]
     for r in rings:
         table += [np.stack([np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)], 1)]
     for h in hist_rows:
@@ -558,13 +573,14 @@ def fold(
         ema=ema is not None,
         rings=tuple(r.data.shape[1] for r in rings),
         packs=packs,
-        counted=counted_here,
+        counted=counted.shape[0] if counted_here else 0,
         rows=rows,
         batch=width,
         grouped=batch.grouped,
         gather=gather,
         hists=len(hists),
         hist_bins=tuple(h.bins for h in hist_rows),
+        sources=not batch.grouped and batch.src == tuple(range(rows)),
     )
     # A program of group rows mostly finds its chunk empty or nearly so: with fewer warps
     # more such programs run at once (docs/benchmarks.md, "Per-group statistics").

@@ -5,14 +5,16 @@ only by those that are masked in or carry a non-finite flag, a few per step wher
 episodes end (1% of them at an episode of 100 steps). Folded from the batch, each of
 `groups x sources` rows reads every entry to find its few: work in rows x entries, where
 the entries that reach any are sources x arrivals. Listed first, per source row, in
-entry order (one cumulative count per chunk of the row, and a store of each reached
-entry's index at its rank), every row of the batch, group rows and overall rows alike,
-is then read from its source row's list (`_kernel`, `gather`): as many entries as the
-list has, in the order of the batch, so that ranks, EMA weights and ring slots come out
-as from the batch itself. A step where every entry arrives lists them all, and the rows
-then read the whole batch. A batch with an EMA or a ring past `LONG` entries is read
-from the lists with or without group rows: its rows then need no chunks, no chunk counts
-and no combination of the chunks' statistics.
+entry order (each chunk of the row lists its reached entries in its own segment of the
+list and counts them), every row of the batch, group rows and overall rows alike, is
+then read from its source row's list (`_kernel`, `gather`): the chunks' counts place each
+of the list's first entries in its segment, as many as the list has, in the order of
+the batch, so that ranks, EMA weights and ring slots come out as from the batch itself.
+The chunks need no count of the entries before them: the listing is one kernel. A step
+where every entry arrives lists them all, and the rows then read the whole batch. A
+batch with an EMA or a ring past `LONG` entries is read from the lists with or without
+group rows: its rows then need no chunks, no chunk counts and no combination of the
+chunks' statistics.
 """
 
 import functools
@@ -23,25 +25,29 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-from ._chunks import COUNTED_HERE, counted_input, per_chunk
+from ._chunks import COUNTED_HERE, counted_input
 from ._selected import Selected
 
 CHUNK = 1024
-"""Entries per program of the listing."""
-LONG = 32768
+"""Entries per program of the listing, up to `SEGMENTS` chunks a row."""
+SEGMENTS = 16
+"""Chunks of a row past which the listing's chunks grow (`chunk`): a row's reader places
+its list's entries among that many segments, `[SEGMENTS, block]` in its registers."""
+LONG = 16384
 """Entries past which a batch without group rows but with ranks is read from the lists
-(`listed`): at 65,536 entries its chunks' counts and combination cost more than the
-listing; at 16,384 and 24,576 neither was faster."""
+(`listed`): from 24,576 entries its chunks' counts and combination cost more than the
+listing; at 16,384 its chunks, counting the row's mask themselves, cost less
+(docs/benchmarks.md, "Scaling")."""
 ROWS = 64
 """Group rows without ranks from which a batch of up to `_chunks.COUNTED_HERE` entries
 reads them from the lists (`listed`)."""
 
 
 class Reached(NamedTuple):
-    """Per source row of a batch (`[S, W]` int32, W the batch rounded up to whole
-    chunks): the indices of its reached entries in order, then entries of no meaning; and
-    its reached entries per chunk (`[S, n]` int32, zero-padded), whose sum is the list's
-    length."""
+    """Per source row of a batch (`[S, W]` int32, W the batch rounded up to whole chunks):
+    the indices of its reached entries, chunk c's in order from entry `c * chunk` on, then
+    entries of no meaning; and its reached entries per chunk (`[S, n]` int32), whose sum
+    is the list's length."""
 
     listed: jax.Array
     counts: jax.Array
@@ -70,20 +76,22 @@ def block(batch: int) -> int:
 
 
 def chunk(batch: int) -> int:
-    """Entries per program of the listing (and per block of a row's long list)."""
-    return min(CHUNK, 1 << (batch.bit_length() - 1))
+    """Entries per program of the listing: `CHUNK`, or more where that makes more than
+    `SEGMENTS` chunks of a row; at most the batch (a power of two)."""
+    size = max(CHUNK, pl.next_power_of_2(-(-batch // SEGMENTS)))
+    return min(size, 1 << (batch.bit_length() - 1))
 
 
-def _list_kernel(ok_ref, bad_ref, counts_ref, *refs, batch: int, chunk: int, counted: int):
+def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int):
     """One chunk of a source row: each reached entry's index stored at its rank in the
-    row (the entries reached in earlier chunks, from `counts`, plus those before it in the
-    chunk). Programs past the source rows sum a chunk of a counted row instead. The last
+    chunk, in the chunk's segment of the row's list, and the chunk's reached entries
+    counted. Programs past the source rows sum a chunk of a counted row instead. The last
     chunk of a row that chunks do not divide ends at the row's end, its entries of the
     chunk before masked out."""
     if counted:
-        counted_ref, listed_ref, sums_ref = refs
+        counted_ref, listed_ref, counts_ref, sums_ref = refs
     else:
-        (listed_ref,) = refs
+        listed_ref, counts_ref = refs
     row, c = pl.program_id(0), pl.program_id(1)
     sources = ok_ref.shape[0]
     lo = c * chunk
@@ -92,15 +100,13 @@ def _list_kernel(ok_ref, bad_ref, counts_ref, *refs, batch: int, chunk: int, cou
 
     def listing():
         cols = (pl.ds(row, 1), pl.ds(start, chunk))
-        reached = (ok_ref[cols] | (bad_ref[cols] != 0)) & (at >= lo)
-        counts = counts_ref[pl.ds(row, 1), :]
-        chunks = jax.lax.broadcasted_iota(jnp.int32, counts.shape, 1)
-        earlier = jnp.sum(jnp.where(chunks < c, counts, 0))
-        rank = earlier + jnp.cumsum(reached.astype(jnp.int32), axis=1) - 1
+        reached = ((ok_ref[cols] | (bad_ref[cols] != 0)) & (at >= lo)).astype(jnp.int32)
+        rank = jnp.cumsum(reached, axis=1) - 1
         # Entries left out are pointed past the list (Pallas' interpret mode writes them
         # back).
-        slot = jnp.where(reached, rank, listed_ref.shape[1])
-        plt.store(listed_ref.at[jnp.broadcast_to(row, at.shape), slot], at, mask=reached)
+        slot = jnp.where(reached > 0, lo + rank, listed_ref.shape[1])
+        plt.store(listed_ref.at[jnp.broadcast_to(row, at.shape), slot], at, mask=reached > 0)
+        counts_ref[pl.ds(row, 1), pl.ds(c, 1)] = jnp.sum(reached, axis=1, keepdims=True)
 
     def summing():
         r = pl.ds(row - sources, 1)
@@ -115,23 +121,25 @@ def _list_kernel(ok_ref, bad_ref, counts_ref, *refs, batch: int, chunk: int, cou
 
 def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Reached:
     """The lists of `batch`'s source rows (`Reached`), and the sums of `counted`'s rows
-    (`[C, B]` integers: a counted row sums every entry, reached or not). XLA counts each
-    chunk's reached entries; one program per chunk lists them, or sums a counted row's."""
+    (`[C, B]` integers: a counted row sums every entry, reached or not). One program per
+    chunk lists and counts a chunk's reached entries, or sums a counted row's."""
     sources, width = batch.ok.shape
     size = chunk(width)
     n = -(-width // size)
-    counts = per_chunk((batch.ok | (batch.bad != 0)).astype(jnp.int32), size)
 
     def whole(a):
         return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
 
-    ins = [batch.ok, batch.bad, counts]
+    ins = [batch.ok, batch.bad]
     rows = counted.shape[0]
     if rows:
         ins.append(counted_input(counted, sources))
-    outs = [jax.ShapeDtypeStruct((sources, n * size), jnp.int32)]
+    outs = [
+        jax.ShapeDtypeStruct((sources, n * size), jnp.int32),
+        jax.ShapeDtypeStruct((sources, n), jnp.int32),
+    ]
     outs += [jax.ShapeDtypeStruct((rows, n), jnp.int32)] if rows else []
-    listed, *sums = pl.pallas_call(
+    listed, counts, *sums = pl.pallas_call(
         functools.partial(_list_kernel, batch=width, chunk=size, counted=rows),
         out_shape=tuple(outs),
         grid=(sources + rows, n),

@@ -568,13 +568,28 @@ def test_fused_kernel_reads_group_rows_from_the_lists_of_reached_entries(
 
 
 @pytest.mark.parametrize(
+    ("rows", "batch", "size", "seed"), [(2, 24577, 100, 0), (1, 65536, 7, 1), (3, 40000, 5, 2)]
+)
+def test_fused_kernel_reads_long_rows_from_the_chunks_segments_of_their_lists(
+    rows, batch, size, seed
+):
+    # Ungrouped rows read from their lists, whose chunks (2,048 and 4,096 entries here,
+    # `_reached.SEGMENTS`) each list their entries in a segment of their own: the mask's
+    # density drawn per run of 3,000 entries, so that segments are empty, sparse and full
+    # side by side; against the float64 loop.
+    check_fused_kernel(rows, batch, size, seed, pieces=3000, listed=True)
+
+
+@pytest.mark.parametrize(
     ("sources", "batch", "density"),
-    [(3, 300, 0.02), (2, 3000, 0.5), (1, 4097, 1.0), (2, 65, 0.0), (1, 2048, 0.02)],
+    [(3, 300, 0.02), (2, 3000, 0.5), (1, 4097, 1.0), (2, 65, 0.0), (1, 2048, 0.02)]
+    + [(1, 24577, 0.3)],  # chunks of 2,048 (`_reached.SEGMENTS`)
 )
 def test_reached_entries_are_listed_in_order_and_counted_rows_summed(sources, batch, density):
-    # The lists hold each source row's masked-in or flagged entries, in entry order,
-    # across chunks (the last one at 300, 3,000 and 4,097 overlapping the one before),
-    # and the listing's kernel sums every counted row whole: against numpy.
+    # The lists hold each source row's masked-in or flagged entries, each chunk's in
+    # entry order in its own segment (the last chunk at 300, 3,000 and 4,097 overlapping
+    # the one before), counted per chunk, and the listing's kernel sums every counted row
+    # whole: against numpy.
     from jaxmetrics import _stream
     from jaxmetrics._stream import _reached
 
@@ -588,10 +603,15 @@ def test_reached_entries_are_listed_in_order_and_counted_rows_summed(sources, ba
         return _reached.reached(batch, counted, interpret=True)
 
     (listed, counts), sums = jax.jit(lists)(ok, bad, counted)
+    size = _reached.chunk(batch)
+    assert counts.shape == (sources, -(-batch // size))
     for r in range(sources):
-        want = np.flatnonzero(ok[r] | (bad[r] != 0))
-        assert int(np.sum(counts[r])) == len(want)
-        np.testing.assert_array_equal(np.asarray(listed[r, : len(want)]), want)
+        reached = np.flatnonzero(ok[r] | (bad[r] != 0))
+        for c in range(counts.shape[1]):
+            want = reached[(reached >= c * size) & (reached < (c + 1) * size)]
+            assert int(counts[r, c]) == len(want)
+            segment = np.asarray(listed[r, c * size : c * size + len(want)])
+            np.testing.assert_array_equal(segment, want)
     np.testing.assert_array_equal(sums, counted.sum(axis=1))
 
 
@@ -780,14 +800,15 @@ def test_fused_kernel_serves_float32_batches_of_32_to_65536(monkeypatch, num_env
 
 @pytest.mark.parametrize(
     ("num_envs", "ema", "kernels"),
-    [(4096, False, 0), (4097, False, 1), (65536, False, 1), (4096, True, 1), (65536, True, 2)],
+    [(4096, False, 0), (4097, False, 1), (65536, False, 1), (4096, True, 1), (16384, True, 1)]
+    + [(16385, True, 2), (65536, True, 2)],
 )
 def test_period_statistics_alone_fold_in_the_kernel_past_4096_envs_without_lists(
     monkeypatch, num_envs, ema, kernels
 ):
     # Ungrouped period statistics are XLA's one reduction up to 4,096 envs and the
     # kernel's past it, whose chunks need no lists of reached entries at any size (one
-    # Pallas call); with an EMA the kernel serves every size, and past 32,768 envs
+    # Pallas call); with an EMA the kernel serves every size, and past 16,384 envs
     # reads the rows from the lists (a second call, the listing's).
     from jaxmetrics import _stream
 
@@ -875,9 +896,8 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     # with `groups`, each metric also per group (indices out of range included), its
     # group rows read by the kernel from the ungrouped batch; not `ranked`: the period
     # statistics only, which the kernel folds for group rows and past 4,096 envs; `listed`:
-    # the rows read
-    # from the lists of reached entries (`_reached`, with group rows or past 32,768
-    # envs without), else from the batch.
+    # the rows read from the lists of reached entries (`_reached`, with group rows or past
+    # 16,384 envs without), else from the batch.
     from jaxmetrics import _stream
     from jaxmetrics._stream import _reached
 
