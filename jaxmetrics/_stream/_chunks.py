@@ -29,6 +29,10 @@ LONG_COUNTED_HERE = 16384
 """Entries up to which the chunks of ungrouped rows with ranks count the row's mask
 themselves past `COUNTED_HERE`, where that makes at most `LONG_PROGRAMS` programs."""
 LONG_PROGRAMS = 160
+LARGER_CHUNKS = 16384
+"""Entries from which rows with ranks (and group rows) are folded in chunks of 2,048, not
+1,024: at 16,384 entries half as many programs, each reading the row's mask, and half as
+many chunks to combine cost less; at 12,288 more."""
 ALWAYS_CHUNKED = 2048
 COMBINED_BY_REDUCTIONS = 256
 """Rows from which `combine` reduces over the chunks (else folds them elementwise)."""
@@ -46,25 +50,28 @@ class Chunking(NamedTuple):
 
 def chunking(rows: int, batch: int, grouped: bool, *, ranked: bool) -> Chunking:
     """How each of `rows` rows of `batch` entries is folded; `grouped`: the rows include
-    group rows; `ranked`: with an EMA or a ring. A row past `COUNTED_HERE` entries in
-    chunks of 1,024 entries (2,048 past 16,384) whose partial statistics `fold` combines,
-    counted by XLA: one program per long row leaves most of the GPU idle, and smaller
-    chunks make more programs and partial statistics than the GPU gains from. Ungrouped
-    rows with ranks up to `LONG_COUNTED_HERE` entries count them themselves where that
-    makes at most `LONG_PROGRAMS` programs: the row's mask read by each of its chunks
-    costs less than XLA's kernel of chunk counts there, and more past it. Ungrouped rows
-    without ranks take chunks twice that size: they read no chunk counts, and with fewer
-    chunks less is left to combine. A shorter one past `ONE_PROGRAM` in chunks of
-    1,024 where that makes at most `PROGRAMS` programs, each counting the row's mask
-    itself: a program's time is mostly latency that grows with its entries, so ten rows
-    of 4,096 run faster as forty programs. Group rows past `ALWAYS_CHUNKED` entries are
-    chunked at any number of rows, counted by XLA: a chunk without any masked-in entry
-    (most chunks of group rows) costs little, where every program reading its whole row's
-    mask costs more than the XLA reduction. Else one program per row: four hundred
-    programs of ungrouped rows run no faster than a hundred (docs/benchmarks.md,
-    "Scaling" and "Per-group statistics")."""
+    group rows; `ranked`: with an EMA or a ring. A row past `COUNTED_HERE` entries in chunks
+    of 1,024 entries (2,048 from `LARGER_CHUNKS`) whose partial statistics `fold` combines,
+    counted by XLA: one program per long row leaves most of the GPU idle, and smaller chunks
+    make more programs and partial statistics than the GPU gains from. Ungrouped rows with
+    ranks up to `LONG_COUNTED_HERE` entries count them themselves where that makes at most
+    `LONG_PROGRAMS` programs: the row's mask read by each of its chunks costs less than
+    XLA's kernel of chunk counts there, and more past it. Ungrouped rows without ranks take
+    chunks of 2,048 (4,096 past 16,384 entries): they read no chunk counts, and with fewer
+    chunks less is left to combine. A shorter one past `ONE_PROGRAM` in chunks of 1,024
+    where that makes at most `PROGRAMS` programs, each counting the row's mask itself: a
+    program's time is mostly latency that grows with its entries, so ten rows of 4,096 run
+    faster as forty programs. Group rows past `ALWAYS_CHUNKED` entries are chunked at any
+    number of rows, counted by XLA: a chunk without any masked-in entry (most chunks of
+    group rows) costs little, where every program reading its whole row's mask costs more
+    than the XLA reduction. Else one program per row: four hundred programs of ungrouped
+    rows run no faster than a hundred (docs/benchmarks.md, "Scaling" and "Per-group
+    statistics")."""
     if batch > COUNTED_HERE:
-        size = (1024 if batch <= 16384 else 2048) * (1 if ranked or grouped else 2)
+        if ranked or grouped:
+            size = 1024 if batch < LARGER_CHUNKS else 2048
+        else:
+            size = 2048 if batch <= 16384 else 4096
         n = -(-batch // size)
         itself = batch <= LONG_COUNTED_HERE and rows * n <= LONG_PROGRAMS
         return Chunking(size, n, ranked and not grouped and itself)

@@ -633,6 +633,9 @@ def test_reached_entries_are_listed_in_order_and_counted_rows_summed(sources, ba
         (2, 12289, 5000, 13, 13, True),
         (13, 12288, 3, 14, 12, True),
         (14, 12288, 3, 15, 12, False),
+        (2, 16384, 5000, 16, 8, True),
+        (20, 16384, 3, 17, 8, True),
+        (21, 16384, 3, 18, 8, False),
         (2, 24577, 5000, 8, 13, False),
     ],
 )
@@ -640,8 +643,9 @@ def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chu
     # Past 1,024 entries a row is chunked (up to 4,096 entries, while that makes at most
     # 128 programs); each chunk's program counts the row's mask around it itself (in one
     # block, or two at 3,000, 1,025, 4,097 and 12,289) up to 4,096 entries, and up to
-    # 16,384 while that makes at most 160 programs (13 rows of 12 chunks, not 14); past
-    # that (24,577) it reads the chunks' counts. Masks drawn per 1,024 entries as empty,
+    # 16,384 while that makes at most 160 programs (13 rows of 12 chunks, not 14; at
+    # 16,384 chunks of 2,048, 20 rows of 8, not 21); past that (24,577) it reads the
+    # chunks' counts. Masks drawn per 1,024 entries as empty,
     # full or in between, so that whole chunks are empty or full; rings smaller than a
     # chunk, and larger than several.
     from jaxmetrics._stream import _chunks

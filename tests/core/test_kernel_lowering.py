@@ -44,6 +44,7 @@ def _spec(features: str, groups: int) -> jm.Metrics:
         (3000, 0, "full"),  # chunks that count the row's mask, two blocks each
         (4097, 0, "full"),  # chunks that count the row's mask, the last one overlapping
         (12288, 0, "full"),  # the same, the mask read in two blocks of 8,192
+        (16384, 0, "full"),  # chunks of 2,048 that count the row's mask
         (24576, 0, "full"),  # rows read from the lists, chunks of 2,048 listed
         (65536, 0, "full"),  # the same, chunks of 4,096 listed
         (300, 3, "full"),  # group rows from the lists, histograms counted in the kernel
