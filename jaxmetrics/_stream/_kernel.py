@@ -126,8 +126,8 @@ def _kernel(
     as it is read: the source's mask and, for a group row (`grouped`), its group index
     equal to the row's group; its non-finite flags count in the same group. With
     `gather` (one program per row, no counted row), at the entries of its source row's
-    list (`listed`, `[S, W]`, placed by `reached`'s chunk counts, `_reached.Reached`) in
-    blocks of `gather` entries, in entry order: ranks, EMA weights and ring slots come
+    list (`listed`, `[S, W]`, and `reached`, its chunks' counts: `_reached.list_reader`)
+    in blocks of `gather` entries, in entry order: ranks, EMA weights and ring slots come
     out as from the batch.
 
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
@@ -311,28 +311,13 @@ def _kernel(
         fold_blocks(blocks, lambda: [values() for _, values in loaded])
 
     def fold_listed():
-        # The row read from its source row's list of reached entries (`_reached`), whose
-        # chunks' counts place the list's k-th entry: in the segment of the first chunk
-        # whose counts up to it pass k, at k less the entries of the chunks before. In one
+        # The row read from its source row's list of reached entries (`_reached`): in one
         # block of `gather` entries at most steps, loaded once for every pass; else in
         # blocks of that size, loaded by each pass.
-        chunks = reached_ref.shape[1]
-        c = jax.lax.broadcasted_iota(jnp.int32, (pl.next_power_of_2(chunks), 1), 0)
-        at_src = jnp.broadcast_to(src, c.shape)
-        counts = plt.load(reached_ref.at[at_src, c], mask=c < chunks, other=0)
-        ends = jnp.cumsum(counts, axis=0)
-        length = jnp.sum(counts)
-        segment = _reached.chunk(batch)
+        length, entries = _reached.list_reader(listed_ref, reached_ref, src, batch)
 
         def block(start, n: int):
-            k = jax.lax.broadcasted_iota(jnp.int32, (1, n), 1) + start
-            there = k < length
-            before = ends <= k  # [chunks, n]: the chunks wholly before entry k
-            seg = jnp.sum(before.astype(jnp.int32), axis=0, keepdims=True)
-            rank = k - jnp.sum(jnp.where(before, counts, 0), axis=0, keepdims=True)
-            at = jnp.where(there, seg * segment + rank, 0)
-            cols = plt.load(listed_ref.at[jnp.broadcast_to(src, k.shape), at], mask=there, other=0)
-            return read(None, n, there, cols)
+            return read(None, n, *entries(start, n))
 
         def one_block():
             marks, values = block(0, chunk)
@@ -447,8 +432,7 @@ def _kernel(
 
     fold_chunk()
     if hists and not hist_bins:
-        row = pl.program_id(0)
-        add = functools.partial(add_in_kernel, row, hist_in, hist_out)
+        add = functools.partial(add_in_kernel, r, hist_in, hist_out)
         if n_chunks == 1:
             add()
         else:

@@ -119,6 +119,34 @@ def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int):
         listing()
 
 
+def list_reader(listed_ref, counts_ref, src, batch: int):
+    """Inside the fused kernel: the length of source row `src`'s list (`Reached`, its
+    `listed` and `counts` as `listed_ref` and `counts_ref`, of a batch of `batch` entries),
+    and `entries(start, n)`: which of the list's entries `start` to `start + n - 1` it has
+    (`[1, n]` bool) and their indices in the batch (`[1, n]` int32, 0 where it has none),
+    in entry order. The list's k-th entry lies in the segment of the first chunk whose
+    counts up to it pass k, at k less the entries of the chunks before: `[chunks, n]`
+    compares (at most `SEGMENTS` chunks)."""
+    chunks = counts_ref.shape[1]
+    c = jax.lax.broadcasted_iota(jnp.int32, (pl.next_power_of_2(chunks), 1), 0)
+    counts = plt.load(counts_ref.at[jnp.broadcast_to(src, c.shape), c], mask=c < chunks, other=0)
+    ends = jnp.cumsum(counts, axis=0)
+    length = jnp.sum(counts)
+    size = chunk(batch)
+
+    def entries(start, n: int) -> tuple[jax.Array, jax.Array]:
+        k = jax.lax.broadcasted_iota(jnp.int32, (1, n), 1) + start
+        there = k < length
+        before = ends <= k  # [chunks, n]: the chunks wholly before entry k
+        seg = jnp.sum(before.astype(jnp.int32), axis=0, keepdims=True)
+        rank = k - jnp.sum(jnp.where(before, counts, 0), axis=0, keepdims=True)
+        at = jnp.where(there, seg * size + rank, 0)
+        rows = jnp.broadcast_to(src, k.shape)
+        return there, plt.load(listed_ref.at[rows, at], mask=there, other=0)
+
+    return length, entries
+
+
 def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Reached:
     """The lists of `batch`'s source rows (`Reached`), and the sums of `counted`'s rows
     (`[C, B]` integers: a counted row sums every entry, reached or not). One program per
