@@ -15,13 +15,11 @@ import numpy as np
 
 from .. import _count, _sketch
 from .._count import Count
-from .._numerics import kahan_add
 from .._sharding import gathered
-from . import _hists, _kernel, _reached, _segments
+from . import _hists, _kernel, _reached, _segments, _update
 from ._segments import SegmentPlan
 from ._selected import Selected
 from ._state import (
-    INT32_MAX,
     Ring,
     StreamPlan,
     StreamState,
@@ -106,73 +104,41 @@ def add_with_counts(
         folded = (joined, *folded[1:])
     stats, ema_data, window_data, hists, hist_steps = folded
     k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, counted_sums = stats
-
-    kf = k.astype(wt)
-    na = _count.as_float(s.count, wt)
-    n = na + kf
-    frac = jnp.where(n > 0, kf / jnp.maximum(n, 1), 0)
-    # With values in the period, shift == s.mean and mb (the batch's mean minus it) is
-    # Chan's delta; without, the new mean is mb (frac == 1) and the old mean carries no
-    # weight (na == 0).
-    m2, m2_c = kahan_add(s.m2, s.m2_c, m2b + mb * mb * (na * frac).astype(dt))
-    # Every [R] field below is a function of `k` (an empty batch leaves it as it is),
-    # which lets XLA update them all in one multi-output kernel.
-    some = k > 0
-    total, total_c = kahan_add(s.sum, s.sum_c, bsum)
-    total, total_c = jnp.where(some, total, s.sum), jnp.where(some, total_c, s.sum_c)
-    mean = period_mean(total, total_c, n, shift + mb * frac.astype(dt))
-    vmin = jnp.where(some, jnp.minimum(s.min, bmin), s.min)
-    vmax = jnp.where(some, jnp.maximum(s.max, bmax), s.max)
-
-    ema, ema_off, ema_w, ema_n = s.ema, s.ema_off, s.ema_w, s.ema_n
+    fields = _update.update(
+        _update.Fields.of(s),
+        _update.Stats(k, bsum, bmin, bmax, mb, m2b, bad, ema_sum),
+        shift,
+        update_rows(plan),
+        wt,
+    )
     ema_rings = s.ema_rings
     if plan.ema_rows:
-        er = plan.ema_rows
-        ek = take_rows(er, k)
-        ema, ema_off, ema_w = _ema_update(plan, s, k, shift, mean, ema_sum)
-        is_ema = plan.ema_by_row(0.0)[0]
-        ema_n = ema_n + jnp.where(is_ema, jnp.minimum(k, INT32_MAX - ema_n), 0)
+        ek = take_rows(plan.ema_rows, k)
         ema_rings = tuple(
             _advanced(ring._replace(data=data), take_rows(g.rows, ek)) if ring.size else ring
             for g, ring, data in zip(plan.ema_groups, s.ema_rings, ema_data)
         )
-    windows = []
-    for g, w, data in zip(plan.windows, s.windows, window_data):
-        # `pos` and `filled` of every row, elementwise in `k` (rows of other groups keep
-        # theirs), not the group's [R_w] ones: that keeps them in the [R] update kernel.
-        mine = np.isin(np.arange(len(plan.rows)), g.rows)
-        moved = _advanced(w, k)
-        pos = jnp.where(mine, moved.pos, w.pos)
-        filled = jnp.where(mine, moved.filled, w.filled)
-        windows.append(Ring(data, pos, filled))
     sketches = tuple(
         _sketch.add(c, _sketch.slot(g, *batch.take(g.rows).dense()[:2]))
         for g, c in zip(folds.sketches, s.sketches)
     )
-    new = s._replace(
-        count=_count.add(s.count, k),
-        # Read through `k`, like `steps` and the counted sums (see the module docstring).
-        nonfinite=_count.add(s.nonfinite, jnp.where(k < 0, 0, bad)),
-        mean=mean,
-        m2=m2,
-        m2_c=m2_c,
-        sum=total,
-        sum_c=total_c,
-        min=vmin,
-        max=vmax,
-        ema=ema,
-        ema_off=ema_off,
-        ema_w=ema_w,
-        ema_n=ema_n,
+    new = fields.into(s)
+    new = new._replace(
         ema_rings=ema_rings,
-        steps=s.steps + jnp.where(k < 0, 0, 1).astype(jnp.uint32),
-        windows=tuple(windows),
+        windows=tuple(w._replace(data=d) for w, d in zip(new.windows, window_data)),
         hists=hists,
         hist_steps=hist_steps,
         sketches=sketches,
     )
     packs = width // len(plan.rows) if plan.rows else 0
     return new, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, counted_sums))
+
+
+def update_rows(plan: StreamPlan) -> _update.Rows:
+    """What `_update.update` needs to know of the plan's rows."""
+    is_ema, coeff = plan.ema_by_row(1.0) if plan.ema_rows else (None, None)
+    rows = np.arange(len(plan.rows))
+    return _update.Rows(is_ema, coeff, tuple((g.size, np.isin(rows, g.rows)) for g in plan.windows))
 
 
 def _fold_rows(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, fused, interpret):
@@ -364,19 +330,11 @@ def _nothing_counted(values: jax.Array) -> jax.Array:
     return jnp.zeros((0, values.shape[1]), jnp.int32)
 
 
-def _ema_offset(ema_w, ema_off, shift) -> tuple[jax.Array, jax.Array]:
-    """Per row, from the state's `ema_w` and `ema_off` and the batch's `shift`: the offset
-    the batch's EMA deviations are taken from, and whether this batch seeds the EMA (none
-    seen yet)."""
-    seeded = ema_w > 0
-    return jnp.where(seeded, ema_off, shift), ~seeded
-
-
 def _ema_operands(plan: StreamPlan, values, mask, after, k, off, seeding):
     """The EMA's input to the batch's reduction, every row ([R, B]; zero rows where a
     row has no EMA): the deviations `x - off` weighed by their EMA weights. `after` and
     `k` are every row's arrival ranks and counts (`arrivals_after`); `off` and `seeding`
-    come from `_ema_offset`."""
+    come from `_update.ema_offset`."""
     # Sequential EMA over the k arrivals in closed form: the value with `after` later
     # arrivals gets weight c(1-c)^after; the old EMA gets (1-c)^k. Unseeded, the first
     # arrival (after == k - 1) seeds it and weighs (1-c)^(k-1). The EMA is kept relative
@@ -395,28 +353,6 @@ def ema_weights(c, after, seeding, count, dt):
     (1-c)^(count-1)."""
     decay = jnp.power(1 - c, after.astype(dt))
     return jnp.where(seeding & (after == count - 1), decay, c * decay)
-
-
-def _ema_update(plan: StreamPlan, s: StreamState, k, shift, mean, new):
-    """New (ema, ema_off, ema_w), every row ([R]; rows without an EMA keep theirs), from
-    the batch's sum of `_ema_operands`, `new`."""
-    dt = plan.dtype
-    is_ema, coeff = plan.ema_by_row(1.0)
-    c_all = jnp.asarray(coeff, dt)
-    # The deviations were taken off `base`, known before the batch. A seeding batch's
-    # weights sum to 1, so its EMA moves to the offset fixed now, the period's mean as of
-    # this batch, by adding `base - off`: the rounding of that first batch then decays
-    # like any value, where an offset of `base` (0 for a row never seen) would stay.
-    base, seeding = _ema_offset(s.ema_w, s.ema_off, shift)
-    seeded = ~seeding
-    off = jnp.where(seeded, s.ema_off, mean)
-    keep = jnp.power(1 - c_all, k.astype(dt))
-    ema = jnp.where(seeded, keep * s.ema, 0) + new + (base - off)
-    some = is_ema & (k > 0)
-    ema = jnp.where(some, ema, s.ema)
-    ema_off = jnp.where(some, off, s.ema_off)
-    ema_w = jnp.where(~seeded & some, jnp.ones_like(s.ema_w), s.ema_w)
-    return ema, ema_off, ema_w
 
 
 def _ring_data(w: Ring, step: jax.Array, values, mask, after, k) -> jax.Array:
@@ -454,7 +390,7 @@ def _fold(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, coun
     after, k = arrivals_after(take_rows(ranked, mask)) if ranked else (None, None)
     ema_in = None
     if plan.ema_rows:
-        off, seeding = _ema_offset(s.ema_w, s.ema_off, shift)
+        off, seeding = _update.ema_offset(s.ema_w, s.ema_off, shift)
         ema_in = _ema_operands(plan, values, mask, after, k, off, seeding)
 
     def ring(w: Ring, rows: tuple[int, ...]) -> jax.Array:
@@ -557,16 +493,3 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
 def _pairs(items) -> tuple[tuple, tuple]:
     pairs = tuple(items)
     return tuple(a for a, _ in pairs), tuple(b for _, b in pairs)
-
-
-def period_mean(total: jax.Array, total_c: jax.Array, n: jax.Array, chan: jax.Array) -> jax.Array:
-    """The period's mean: its compensated sum over its count, where that is finite, else
-    Chan's running mean (`chan`: an empty period's 0, or a sum that overflowed).
-
-    Chan's update `mean + delta * k / n` stops moving in float32 once `delta * k / n` is
-    below the mean's ulp (one value per step at counts past ~10^5 of data near 1e4), and
-    the variance then grows around the stale mean; the compensated sum holds the mean
-    to a few ulp at any count, and the deviations of the next batch are taken from it."""
-    dt = total.dtype
-    mean = (total - total_c) / jnp.maximum(n, 1).astype(dt)
-    return jnp.where((n > 0) & jnp.isfinite(mean), mean, chan)

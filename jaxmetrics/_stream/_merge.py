@@ -6,7 +6,7 @@ import jax.numpy as jnp
 from .. import _count
 from .._numerics import kahan_add
 from .._sharding import gathered
-from ._fold import ema_weights, period_mean
+from ._fold import ema_weights
 from ._state import (
     INT32_MAX,
     UINT32_MAX,
@@ -22,6 +22,7 @@ from ._state import (
     widened_ring,
     window_ring,
 )
+from ._update import period_mean
 
 
 def _union(wa: Ring, sa: jax.Array, wb: Ring, sb: jax.Array, dt):
