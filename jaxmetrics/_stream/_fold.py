@@ -78,9 +78,7 @@ def add_with_counts(
     segment sources' batch (values, ok, non-finite counts, group index, `[sources, B]`);
     `batch` then selects the other rows (the plan's `dense` rows). Both halves' batch
     statistics are put in row order before the one update of the per-row fields."""
-    dt = plan.dtype
     width = counts.lo.shape[0]
-    wt = weight_dtype(dt)
     # Deviations from the running mean keep the moments small, so float32 stays accurate
     # for data far from zero. An empty period's mean is 0 (init, reset_period and merge
     # keep it so), so its first batch is folded as it is (Chan's pairwise update is
@@ -91,7 +89,7 @@ def add_with_counts(
         batch = batch.arrays(gathered)
     folds = plan
     if segments is None:
-        folded = _fold_rows(plan, s, batch, shift, counted, fused, interpret)
+        folded = _fold_rows(plan, s, batch, shift, counted, fused, interpret, counts)
     else:
         sp, sources = segments
         folds = sp.dense_plan
@@ -101,16 +99,10 @@ def add_with_counts(
             *(gathered(a) for a in sources), sp.groups, _segments.segment_rows(sp, shift)
         )
         joined = _segments.joined(sp, _kernel.Batch(*folded[0]), grouped, counted.shape[0], width)
-        folded = (joined, *folded[1:])
-    stats, ema_data, window_data, hists, hist_steps = folded
-    k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, counted_sums = stats
-    fields = _update.update(
-        _update.Fields.of(s),
-        _update.Stats(k, bsum, bmin, bmax, mb, m2b, bad, ema_sum),
-        shift,
-        update_rows(plan),
-        wt,
-    )
+        folded = (joined, *folded[1:-1], None)
+    stats, ema_data, window_data, hists, hist_steps, updated = folded
+    k = stats[0]
+    fields, counts = updated or _updated(plan, s, stats, shift, counts)
     ema_rings = s.ema_rings
     if plan.ema_rows:
         ek = take_rows(plan.ema_rows, k)
@@ -130,8 +122,18 @@ def add_with_counts(
         hist_steps=hist_steps,
         sketches=sketches,
     )
-    packs = width // len(plan.rows) if plan.rows else 0
-    return new, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, counted_sums))
+    return new, counts
+
+
+def _updated(plan: StreamPlan, s: StreamState, stats, shift, counts: Count):
+    """The state's per-row fields with the batch's statistics (`_kernel.Batch`) folded in
+    (`_update.update`), and the counted rows' `counts` plus the batch's counted sums."""
+    k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, counted_sums = stats
+    b = _update.Stats(k, bsum, bmin, bmax, mb, m2b, bad, ema_sum)
+    wt = weight_dtype(plan.dtype)
+    fields = _update.update(_update.Fields.of(s), b, shift, update_rows(plan), wt)
+    packs = counts.lo.shape[0] // len(plan.rows) if plan.rows else 0
+    return fields, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, counted_sums))
 
 
 def update_rows(plan: StreamPlan) -> _update.Rows:
@@ -141,15 +143,18 @@ def update_rows(plan: StreamPlan) -> _update.Rows:
     return _update.Rows(is_ema, coeff, tuple((g.size, np.isin(rows, g.rows)) for g in plan.windows))
 
 
-def _fold_rows(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, fused, interpret):
+def _fold_rows(
+    plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, fused, interpret, counts=None
+):
     """`_fold` of the rows `batch` selects, or where `fused`, the batch fits and the
     spec has an EMA, a window or group rows, or a batch past `REDUCED_BY_XLA` entries,
     `_fold_fused`; `counted` is `[C, B]` (C up to the plan's rows times the packs of
-    `counts_width`)."""
+    `counts_width`). With `counts` (the counted rows' counts), the fused kernel may update
+    the state's per-row fields and the counts itself: `(fields, counts)` last (else None)."""
     kernel_serves = plan.ema_rows or plan.windows or batch.grouped or batch.batch > REDUCED_BY_XLA
     if kernel_serves and fused and _kernel.fits(batch.batch, plan.dtype):
-        return _fold_fused(plan, s, batch, shift, counted, interpret)
-    return _fold_dense(plan, s, batch, shift, counted)
+        return _fold_fused(plan, s, batch, shift, counted, interpret, counts)
+    return (*_fold_dense(plan, s, batch, shift, counted), None)
 
 
 def _fold_dense(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted):
@@ -422,7 +427,9 @@ def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
     )
 
 
-def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, interpret):
+def _fold_fused(
+    plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, interpret, counts=None
+):
     """`_fold` on a CUDA GPU (or where `interpret`): the batch's statistics, the EMA and
     the rings in one kernel of our own (`_kernel.fold`), which reads the rows from
     `batch`'s source rows; elsewhere `_fold` itself, of the rows as arrays."""
@@ -438,8 +445,8 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
         rings = []
         for g, r in zip(plan.ema_groups, s.ema_rings):
             if r.size:
-                own = where_of(plan.stream_rows(g))
-                rings.append(_kernel.RingIn(r.data, r.pos, own, own))
+                members = where_of(plan.stream_rows(g))
+                rings.append(_kernel.RingIn(r.data, r.pos, members, members))
         for g, r in zip(plan.windows, s.windows):
             mine = where_of(g.rows)  # the window's `pos` has every stream row
             pos_row = np.where(mine >= 0, np.arange(rows), -1)
@@ -463,7 +470,10 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
             )
             for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
         )
-        stats, data, hists = _kernel.fold(
+        update = None
+        if own:
+            update = _update.InKernel(_update.Fields.of(s), update_rows(plan), counts)
+        stats, data, hists, updated = _kernel.fold(
             batch,
             shift,
             s.steps,
@@ -475,15 +485,26 @@ def _fold_fused(plan: StreamPlan, s: StreamState, batch: Selected, shift, counte
             listed=listed,
             hists=hists,
             hist_rows=hist_rows,
+            update=update,
         )
         data = iter(data)
         ema_data = tuple(next(data) if r.size else r.data for r in s.ema_rings)
-        counts = tuple(Count(h.hi, h.lo) for h in hists)
-        return stats, ema_data, tuple(data), counts, tuple(h.counted for h in hists)
+        words = tuple(Count(h.hi, h.lo) for h in hists)
+        return stats, ema_data, tuple(data), words, tuple(h.counted for h in hists), updated
 
     def reference(s, batch, shift, counted):
-        return _fold_dense(plan, s, batch, shift, counted)
+        folded = _fold_dense(plan, s, batch, shift, counted)
+        return (*folded, _updated(plan, s, folded[0], shift, counts) if own else None)
 
+    # Where each row is one program of the kernel, that program also updates the row's
+    # fields of the state, where XLA's update is one more kernel (docs/benchmarks.md,
+    # "Scaling"); not with EMA rings (exact merges), which XLA advances.
+    ranked = bool(plan.ema_rows or plan.windows)
+    groups = sum(k >= 0 for k in batch.kind)
+    one = _reached.listed(groups, batch.batch, ranked) or _kernel.one_program(
+        rows, batch.batch, batch.grouped, ranked
+    )
+    own = counts is not None and one and not any(r.size for r in s.ema_rings)
     args = (s, batch, shift, counted)
     if interpret:
         return kernel(*args)

@@ -38,7 +38,7 @@ import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-from . import _reached
+from . import _reached, _update
 from ._chunks import (
     blocking,
     chunk_counts,
@@ -60,6 +60,12 @@ def fits(batch: int, dtype) -> bool:
     from `MIN_BATCH` to `MAX_BATCH`, the largest measured faster than XLA's kernels
     (docs/benchmarks.md)."""
     return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
+
+
+def one_program(rows: int, batch: int, grouped: bool, ranked: bool) -> bool:
+    """Whether `fold` folds each of `rows` rows of `batch` entries in one program, when
+    it reads them from the batch (`chunking`)."""
+    return chunking(rows, batch, grouped, ranked=ranked).n == 1
 
 
 class RingIn(NamedTuple):
@@ -115,6 +121,7 @@ def _kernel(
     hists: int = 0,
     hist_bins: tuple[int, ...] = (),
     sources: bool = False,
+    updates: tuple[bool, int] | None = None,
 ):
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
     sizes, `packs` the counted rows per batch row (of the first `counted` rows of a
@@ -149,7 +156,12 @@ def _kernel(
     XLA's scatter counts them, and their add would be a kernel of its own. With
     `hist_bins` (only with `gather`) the program counts its own row's entries into its
     row of each histogram instead (`HistRows`), a few entries a step where XLA's scatter
-    reads every entry of the batch."""
+    reads every entry of the batch.
+
+    With `updates` (one program per row; `(ema, listed sums)`) the program also folds the
+    batch's statistics into its row's fields of the state (`_update.update_row`), where
+    XLA's update of the `[R]` fields is a kernel of its own; with listed sums (`[C, n]`,
+    the listing's chunks') it sums its counted rows' from them."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
     if grouped:
         ids_ref, *refs = refs
@@ -168,8 +180,12 @@ def _kernel(
         w_ref, eoff_ref, *refs = refs
     ring_in, refs = refs[: 2 * len(rings)], refs[2 * len(rings) :]
     hist_in, refs = refs[: 3 * hists], refs[3 * hists :]
+    if updates:
+        n_in = 10 + 2 * ema + len(rings) + 2 * (packs > 0) + (updates[1] > 0)
+        update_in, refs = refs[:n_in], refs[n_in:]
     floats, ints, *refs = refs
     refs, hist_out = refs[: len(rings)], refs[len(rings) :]
+    hist_out, update_out = hist_out[: 3 * hists], hist_out[3 * hists :]
     block, n_blocks = blocking(chunk)
 
     def entry(col: int) -> jax.Array:
@@ -181,6 +197,10 @@ def _kernel(
     src = r if sources else entry(Table.SRC)
     kind, group = entry(Table.KIND), entry(Table.GROUP)
     counted_rows = [jnp.where(r + rows * p < counted, r + rows * p, -1) for p in range(packs)]
+    listed_rows = updates[1] if updates else 0
+    counted_rows_listed = [
+        jnp.where(r + rows * p < listed_rows, r + rows * p, -1) for p in range(packs)
+    ]
 
     def reader(
         start, n: int, fresh, cols=None
@@ -271,13 +291,52 @@ def _kernel(
         earlier, later = masked_in_around(mask_at, batch, lo, jnp.minimum(lo + chunk, batch))
     shift = shift_ref[...]
 
+    if updates:
+        # The row's fields of the state are read here, before the fold, whose loads
+        # their reads then overlap; they are written once the row is folded.
+        ins = list(update_in)
+        listed_sums = None
+        if updates[1]:
+            # The counted rows' sums over the listing's chunks, pack p's at p * rows + r.
+            sums_ref = ins.pop()
+            n = sums_ref.shape[1]
+            j = jax.lax.broadcasted_iota(jnp.int32, (1, pl.next_power_of_2(n)), 1)
+            listed_sums = [
+                row_sum(
+                    plt.load(
+                        sums_ref.at[jnp.broadcast_to(jnp.maximum(c, 0), j.shape), j],
+                        mask=(j < n) & (c >= 0),
+                        other=0,
+                    )
+                )
+                for c in counted_rows_listed
+            ]
+        emas = None
+        if ema:
+            c = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
+            emas = (c > 0, jnp.where(c > 0, c, 1.0), w_ref[...], eoff_ref[...])
+        windows = [
+            (size, table[:, Table.ring(i) : Table.ring(i) + 1] >= 0, ring_in[2 * i + 1][...])
+            for i, size in enumerate(rings)
+        ]
+        finish = _update.row_updater(ins, update_out, shift, step_ref[...], emas, windows, r)
+
+        def update_row(stats, csums):
+            finish(stats, csums if listed_sums is None else listed_sums)
+
     def write(xsum, xmin, xmax, p, s1, s2, wsum, total, nbad, csums):
         k = jnp.maximum(total, 1).astype(jnp.float32)
+        mean_dev, m2 = p + s1 / k, jnp.maximum(s2 - s1 * s1 / k, 0)
         floats[:, 0:1] = xsum
         floats[:, 1:2] = xmin
         floats[:, 2:3] = xmax
-        floats[:, 3:4] = p + s1 / k
-        floats[:, 4:5] = jnp.maximum(s2 - s1 * s1 / k, 0)
+        floats[:, 3:4] = mean_dev
+        floats[:, 4:5] = m2
+        if updates:
+            stats = _update.Stats(
+                total, xsum, xmin, xmax, mean_dev, m2, nbad, wsum if ema else None
+            )
+            update_row(stats, csums)
         if ema:
             floats[:, 5:6] = wsum
         if n_chunks > 1:
@@ -382,7 +441,10 @@ def _kernel(
             at = Table.ring(i)
             row = table[:, at : at + 1]  # [1, 1]
             pos_row = jnp.maximum(table[:, at + 1 : at + 2], 0)
-            pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
+            if updates:
+                pos = ring_in[2 * i + 1][...]  # the row's own (`update_row`)
+            else:
+                pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
             ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))
 
         def second(on, bad, *rest):
@@ -439,6 +501,22 @@ def _kernel(
             jax.lax.cond(chunk_id == 0, add, lambda: None)
 
 
+def _update_aliases(update, first_in: int, first_out: int, rings, ema, first_ring) -> dict:
+    """`fold`'s input-output aliases of the fields its kernel updates (`_update.Out`), each
+    in place: an output in a buffer of its own costs a copy into the loop's state."""
+    out = _update.Out
+    aliases = {first_in + i: first_out + o for i, o in enumerate(out.of_inputs(update))}
+    aliases[3] = first_out + out.MEAN  # the shift, the period's mean
+    aliases[4] = first_out + out.STEPS
+    if ema is not None:
+        first_ema = first_ring - 2
+        aliases[first_ema] = first_out + out.EMA_W
+        aliases[first_ema + 1] = first_out + out.EMA_OFF
+    for i in range(len(rings)):
+        aliases[first_ring + 2 * i + 1] = first_out + out.pos(update, i)
+    return aliases
+
+
 class Batch(NamedTuple):
     """Per row of a batch (`[R]`): its count, sum, min and max (+-inf when empty), the mean
     of its deviations from `shift` and their sum of squares around that mean, the sum of
@@ -469,7 +547,8 @@ def fold(
     listed: bool,
     hists: tuple[HistIn, ...] = (),
     hist_rows: tuple[HistRows, ...] = (),
-) -> tuple[Batch, tuple[jax.Array, ...], tuple[HistIn, ...]]:
+    update: _update.InKernel | None = None,
+) -> tuple[Batch, tuple[jax.Array, ...], tuple[HistIn, ...], tuple | None]:
     """Folds the rows `[R, B]` that `batch` selects (`Selected`; float32 values, bool
     mask, integer non-finite flags): their statistics (`Batch`; `shift[R]` float32, and the
     sums of `counted[C, B]` (integers, C up to `packs` times R) as `packs` counted rows per
@@ -478,7 +557,10 @@ def fold(
     rows' newest arrivals written in, stamped with the row's `steps[r]` (uint32); and
     each histogram (`HistIn`) with its step's counts added and zeroed, or, with
     `hist_rows` (one per histogram; the rows read from the lists only), with its rows'
-    entries counted by the kernel, the step's counts left as they are (zero).
+    entries counted by the kernel, the step's counts left as they are (zero). With
+    `update` (`_update.InKernel`), where each row is one program, the kernel also
+    updates the state's per-row fields and the counted rows' counts, returned as
+    `(fields, counts)` (else None; `counted`'s sums are then `Batch.counted_sums`).
 
     The EMA's weighted sum is `sum c(1-c)^after (x - off)` over the row's masked-in
     entries, with `after` how many masked-in entries follow each one; `off` is `ema_off`
@@ -530,7 +612,7 @@ def fold(
     if batch.grouped:
         args.append((batch.ids, whole(batch.ids)))
     if gather:
-        lists, counted_sums = _reached.reached(batch, counted if packs else counted[:0], interpret)
+        lists, chunk_sums = _reached.reached(batch, counted if packs else counted[:0], interpret)
         args += [(a, whole(a)) for a in lists]
     elif reads_counts(rows, width, batch.grouped, ranked):
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
@@ -539,12 +621,23 @@ def fold(
         args.append((padded, whole(padded)))
     if ema is not None:
         args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
+    own = update is not None and n_chunks == 1
     first_ring = len(args)
     for r in rings:
-        args += [(r.data, whole(r.data)), (r.pos, whole(r.pos))]
+        # With `update`, each row's program reads and writes its own `pos` (windows'
+        # have every row).
+        args += [(r.data, whole(r.data)), (col(r.pos), one) if own else (r.pos, whole(r.pos))]
     first_hist = len(args)
     words = [a for h in hists for a in h]
     args += [(a, whole(a)) for a in words]
+    listed_sums = chunk_sums.shape[0] if own and gather and packs else 0
+    first_update = len(args)
+    if own:
+        assert len(rings) == len(update.rows.windows)
+        ins = _update.kernel_inputs(update)
+        args += [(col(a), one) if a.ndim == 1 else (a, whole(a)) for a in ins]
+        if listed_sums:
+            args.append((chunk_sums, whole(chunk_sums)))
     n_int = pl.next_power_of_2(2 + packs)
     outs = [
         (jax.ShapeDtypeStruct((rows, 8 * n_chunks), jnp.float32), per_program(8)),
@@ -552,6 +645,11 @@ def fold(
     ]
     outs += [(jax.ShapeDtypeStruct(r.data.shape, r.data.dtype), whole(r.data)) for r in rings]
     outs += [(jax.ShapeDtypeStruct(a.shape, a.dtype), whole(a)) for a in words]
+    if own:
+        outs += [
+            (jax.ShapeDtypeStruct((rows, 1), o.dtype), one) if len(o.shape) == 1 else (o, whole(o))
+            for o in _update.kernel_outputs(update)
+        ]
     kernel = functools.partial(
         _kernel,
         ema=ema is not None,
@@ -565,6 +663,7 @@ def fold(
         hists=len(hists),
         hist_bins=tuple(h.bins for h in hist_rows),
         sources=not batch.grouped and batch.src == tuple(range(rows)),
+        updates=(ema is not None, listed_sums) if own else None,
     )
     # A program of group rows mostly finds its chunk empty or nearly so: with fewer warps
     # more such programs run at once (docs/benchmarks.md, "Per-group statistics").
@@ -578,6 +677,13 @@ def fold(
         input_output_aliases={
             **{first_ring + 2 * i: 2 + i for i in range(len(rings))},
             **{first_hist + i: 2 + len(rings) + i for i in range(len(words))},
+            **(
+                _update_aliases(
+                    update, first_update, 2 + len(rings) + len(words), rings, ema, first_ring
+                )
+                if own
+                else {}
+            ),
         },
         interpret=interpret,
         compiler_params=None if interpret else plt.CompilerParams(num_warps=warps),
@@ -586,6 +692,7 @@ def fold(
     ints = ints.reshape(rows, n_chunks, n_int)
     floats, ints = (floats[:, 0], ints[:, 0]) if n_chunks == 1 else combine(floats, ints)
     if listed:
+        counted_sums = _reached.summed(chunk_sums)
         counted_sums = jnp.pad(counted_sums, (0, rows * packs - counted_sums.shape[0]))
     else:
         counted_sums = ints[:, 2 : 2 + packs].T.reshape(-1)
@@ -597,4 +704,6 @@ def fold(
         counted_sums,
     )
     data, words = data[: len(rings)], data[len(rings) :]
-    return stats, tuple(data), tuple(HistIn(*words[i : i + 3]) for i in range(0, len(words), 3))
+    words, updated = words[: 3 * len(hists)], words[3 * len(hists) :]
+    hists = tuple(HistIn(*words[i : i + 3]) for i in range(0, len(words), 3))
+    return stats, tuple(data), hists, _update.from_kernel(update, updated) if own else None

@@ -149,8 +149,9 @@ def list_reader(listed_ref, counts_ref, src, batch: int):
 
 def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Reached:
     """The lists of `batch`'s source rows (`Reached`), and the sums of `counted`'s rows
-    (`[C, B]` integers: a counted row sums every entry, reached or not). One program per
-    chunk lists and counts a chunk's reached entries, or sums a counted row's."""
+    (`[C, B]` integers: a counted row sums every entry, reached or not) per chunk (`[C,
+    n]`, added up by `summed`). One program per chunk lists and counts a chunk's reached
+    entries, or sums a counted row's."""
     sources, width = batch.ok.shape
     size = chunk(width)
     n = -(-width // size)
@@ -176,7 +177,11 @@ def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Rea
         interpret=interpret,
         compiler_params=None if interpret else plt.CompilerParams(num_warps=4),
     )(*ins)
-    # The chunks' sums added elementwise: XLA computes them in the kernel that updates
-    # the per-row state, where a reduction would be a kernel of its own.
-    sums = functools.reduce(jnp.add, [sums[0][:, j] for j in range(n)]) if rows else counts[:0, 0]
-    return Reached(listed, counts), sums
+    return Reached(listed, counts), sums[0] if rows else counts[:0]
+
+
+def summed(sums: jax.Array) -> jax.Array:
+    """The counted rows' sums (`[C]`) from their chunks' (`[C, n]`, `reached`'s), added
+    elementwise: XLA computes them in the kernel that updates the per-row state, where a
+    reduction would be a kernel of its own."""
+    return functools.reduce(jnp.add, [sums[:, j] for j in range(sums.shape[1])])

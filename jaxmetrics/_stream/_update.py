@@ -13,11 +13,13 @@ multi-output kernel that updates the other per-row fields (sibling fusions must 
 operand) instead of in a kernel of its own.
 """
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import pallas as pl
 
 from .. import _count
 from .._count import Count
@@ -181,3 +183,140 @@ def period_mean(total: jax.Array, total_c: jax.Array, n: jax.Array, chan: jax.Ar
     dt = total.dtype
     mean = (total - total_c) / jnp.maximum(n, 1).astype(dt)
     return jnp.where((n > 0) & jnp.isfinite(mean), mean, chan)
+
+
+class InKernel(NamedTuple):
+    """The state's fields for the fused kernel to update each row itself (`update_row`):
+    `fields` (`[R]` each), `rows` (`Rows`, its arrays numpy), and the counted rows'
+    counts (`[packs * R]`, pack p of row r at `p * R + r`)."""
+
+    fields: Fields
+    rows: Rows
+    counts: Count
+
+
+def kernel_inputs(u: InKernel) -> list[jax.Array]:
+    """The fields the kernel reads besides its own inputs (the mean, the step, the EMA's
+    offset and weight, the windows' `pos`), in `update_row`'s order: count, non-finite
+    count, m2, sum, min, max, with an EMA the EMA and its count, each window's `filled`,
+    each `[R]`; then the counted rows' counts as `[packs, R]`."""
+    f = u.fields
+    ins = [*f.count, *f.nonfinite, f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max]
+    if u.rows.is_ema is not None:
+        ins += [f.ema, f.ema_n]
+    return ins + list(f.filled) + _packed(u)
+
+
+def kernel_outputs(u: InKernel) -> list[jax.ShapeDtypeStruct]:
+    """What the kernel writes: every field `update` changes, and the counted rows' counts
+    (`[packs, R]`); `OUT` names the positions of those that are also its inputs."""
+    f = u.fields
+    outs = [*f.count, *f.nonfinite, f.mean, f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max, f.steps]
+    if u.rows.is_ema is not None:
+        outs += [f.ema, f.ema_off, f.ema_w, f.ema_n]
+    outs += [*f.pos, *f.filled, *_packed(u)]
+    return [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in outs]
+
+
+class Out:
+    """Positions in `kernel_outputs`."""
+
+    MEAN, STEPS = 4, 11
+    EMA, EMA_OFF, EMA_W = 12, 13, 14
+
+    @staticmethod
+    def pos(u: InKernel, i: int) -> int:
+        return 12 + 4 * (u.rows.is_ema is not None) + i
+
+    @staticmethod
+    def of_inputs(u: InKernel) -> list[int]:
+        """Per `kernel_inputs` entry, its output: each field is updated in place."""
+        ema = u.rows.is_ema is not None
+        windows = len(u.fields.pos)
+        out = [0, 1, 2, 3, 5, 6, 7, 8, 9, 10] + ([12, 15] if ema else [])
+        first = Out.pos(u, windows)
+        out += list(range(first, first + windows))
+        return out + [first + windows + i for i in range(len(_packed(u)))]
+
+
+def _packed(u: InKernel) -> list[jax.Array]:
+    """The counted rows' counts as `[packs, R]` words (none without counted rows)."""
+    rows = u.fields.mean.shape[0]
+    packs = u.counts.lo.shape[0] // rows if rows else 0
+    return [a.reshape(packs, rows) for a in u.counts] if packs else []
+
+
+def from_kernel(u: InKernel, outs: list[jax.Array]) -> tuple[Fields, Count]:
+    """The fields and counted rows' counts that the kernel wrote (`kernel_outputs`)."""
+    f = u.fields
+    outs = [a.reshape(-1) for a in outs]
+    count, nonfinite = Count(*outs[0:2]), Count(*outs[2:4])
+    mean, m2, m2_c, total, total_c, vmin, vmax, steps = outs[4:12]
+    rest = outs[12:]
+    ema = (f.ema, f.ema_off, f.ema_w, f.ema_n)
+    if u.rows.is_ema is not None:
+        ema, rest = tuple(rest[:4]), rest[4:]
+    w = len(f.pos)
+    pos, filled, rest = tuple(rest[:w]), tuple(rest[w : 2 * w]), rest[2 * w :]
+    counts = Count(*rest) if rest else u.counts
+    fields = Fields(
+        count, nonfinite, mean, m2, m2_c, total, total_c, vmin, vmax, *ema, steps, pos, filled
+    )
+    return fields, counts
+
+
+def row_updater(ins, outs, shift, steps, ema, windows, row) -> Callable[[Stats, list], None]:
+    """Inside the fused kernel, by the program of row `row` (which folds the whole row):
+    the row's fields read from `ins` now, so that the reads overlap the fold, and what
+    then updates them (`update`) with the batch's statistics (`Stats`) and the sums of its
+    counted rows (`[1, 1]` each) and writes them to `outs`. `ins` and `outs` are
+    `kernel_inputs` and `kernel_outputs` (`[1, 1]` blocks of the row, the counts whole);
+    `shift` and `steps` the row's mean and arrival step; `ema` its EMA's `(is_ema, coeff,
+    ema_w, ema_off)` (None without EMA rows); `windows` per window its size, whether the
+    row is in it and the row's `pos`."""
+    ins = list(ins)
+
+    def take(n):
+        return [ins.pop(0)[...] for _ in range(n)]
+
+    count_hi, count_lo, nf_hi, nf_lo, m2, m2_c, total, total_c, vmin, vmax = take(10)
+    ema_fields = (shift * 0,) * 4
+    rows = Rows(None, None, tuple((size, mine) for size, mine, _ in windows))
+    if ema is not None:
+        is_ema, coeff, ema_w, ema_off = ema
+        value, ema_n = take(2)
+        ema_fields = (value, ema_off, ema_w, ema_n)
+        rows = rows._replace(is_ema=is_ema, coeff=coeff)
+    pos, filled = [p for *_, p in windows], take(len(windows))
+    f = Fields(
+        Count(count_hi, count_lo),
+        Count(nf_hi, nf_lo),
+        shift,
+        m2,
+        m2_c,
+        total,
+        total_c,
+        vmin,
+        vmax,
+        *ema_fields,
+        steps,
+        tuple(pos),
+        tuple(filled),
+    )
+    counted = [(pl.ds(p, 1), pl.ds(row, 1)) for p in range(ins[0].shape[0])] if ins else []
+    counts = [Count(ins[0][at], ins[1][at]) for at in counted]
+
+    def finish(b: Stats, csums: list) -> None:
+        new = update(f, b, shift, rows, jnp.float32)
+        written = [*new.count, *new.nonfinite, new.mean, new.m2, new.m2_c, new.sum, new.sum_c]
+        written += [new.min, new.max, new.steps]
+        if ema is not None:
+            written += [new.ema, new.ema_off, new.ema_w, new.ema_n]
+        written += [*new.pos, *new.filled]
+        for out, value in zip(outs, written):
+            out[...] = value
+        words = outs[len(written) :]
+        for at, count, sums in zip(counted, counts, csums):
+            words[0][at], words[1][at] = _count.add(count, jnp.where(b.k < 0, 0, sums))
+
+    return finish
