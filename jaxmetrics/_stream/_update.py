@@ -163,7 +163,9 @@ def _ema_update(f: Fields, rows: Rows, k, shift, mean, new):
     base, seeding = ema_offset(f.ema_w, f.ema_off, shift)
     seeded = ~seeding
     off = jnp.where(seeded, f.ema_off, mean)
-    keep = jnp.power(1 - c_all, k.astype(dt))
+    # (1-c)^k as the fused kernel weighs values (`exp2`; 0^0 = 1 for c = 1, as
+    # jnp.power gives): a power is a long call on the update's path in that kernel.
+    keep = jnp.where(k == 0, 1.0, jnp.exp2(k.astype(dt) * jnp.log2(1 - c_all)))
     ema = jnp.where(seeded, keep * f.ema, 0) + new + (base - off)
     some = rows.is_ema & (k > 0)
     ema = jnp.where(some, ema, f.ema)
