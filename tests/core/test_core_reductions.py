@@ -826,6 +826,41 @@ def test_period_statistics_alone_fold_in_the_kernel_past_4096_envs_without_lists
     assert jaxpr.count("pallas_call") == kernels
 
 
+@pytest.mark.parametrize(
+    ("num_envs", "groups", "history", "in_kernel"),
+    [(300, 0, False, True), (1024, 0, False, True), (3000, 0, False, False)]
+    + [(4097, 0, False, False), (16385, 0, False, True), (300, 3, False, True)]
+    + [(300, 0, True, False)],
+)
+def test_the_fused_kernel_updates_the_rows_fields_where_each_row_is_one_program(
+    monkeypatch, num_envs, groups, history, in_kernel
+):
+    # The per-row fields are updated by the program that folds the row where each row is
+    # one (up to 1,024 entries, and rows read from the lists: group rows, and ranked rows
+    # past 16,384 entries): `_update.update` runs on `[1, 1]` blocks there, and not on the
+    # `[R]` fields. Chunked rows, and a spec whose EMA keeps its newest values for exact
+    # merges (rings XLA advances; a reporting state's), take XLA's update of the `[R]`
+    # fields.
+    from jaxmetrics import _fresh, _stream
+    from jaxmetrics._stream import _update
+
+    fold = _stream.add_with_counts
+    monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
+    shapes = []
+    update = _update.update
+    monkeypatch.setattr(_update, "update", lambda f, *a: shapes.append(f.m2.shape) or update(f, *a))
+    term = jm.Term(lambda x: x[0], reduce="mean", stats=("mean", jm.ema(0.1), jm.window(5)))
+    grouping = jm.groups(lambda x: x[1], tuple(f"g{i}" for i in range(groups))) if groups else None
+    metrics = jm.Metrics(terms={"a": term}, groups=grouping)
+    state = metrics.init(num_envs)
+    if history:
+        state = _fresh.fresh(metrics._rows, num_envs, 1, ema_history=True)
+    x = (jnp.zeros(num_envs, jnp.float32), jnp.zeros(num_envs, jnp.int32))
+    jax.make_jaxpr(metrics.update)(state, x, jnp.zeros(num_envs, bool))
+    # (A row read from its list is folded in one block or in a loop of them: two traces.)
+    assert set(shapes) == ({(1, 1)} if in_kernel else {(1 + groups,)})
+
+
 @pytest.mark.parametrize(("num_envs", "groups"), [(300, 0), (4097, 0), (300, 2)])
 def test_fused_kernel_carries_histogram_counts_into_the_high_word(monkeypatch, num_envs, groups):
     # A histogram's counts are two uint32 words: the kernel adds a step's counts to the
