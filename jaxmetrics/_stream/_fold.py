@@ -1,12 +1,15 @@
 """Folding a batch into the stream: the period statistics, the EMA, the rings and the
 histograms, with XLA's kernels or, on a CUDA GPU, one kernel of our own (`_kernel`).
 
+The batch's statistics go into the per-row fields by `_update`: after the batch's
+kernels by XLA, or, where our kernel folds each row in one program, by that program.
+
 Steering XLA's fusion: a per-row field that does not depend on the batch's counts `k`
-(the non-finite count, the arrival step, the counted sums, the zeroed histogram step
-counts) is written as `jnp.where(k < 0, 0, x)` (or through another operand that never
-satisfies its test). The test never holds; it makes the field a function of `k`, so that
-XLA updates it in the one multi-output kernel that updates the other per-row fields
-(sibling fusions must share an operand) instead of in a kernel of its own.
+(the counted sums, the zeroed histogram step counts; `_update`'s own fields likewise) is
+written as `jnp.where(k < 0, 0, x)` (or through another operand that never satisfies its
+test). The test never holds; it makes the field a function of `k`, so that XLA updates it
+in the one multi-output kernel that updates the other per-row fields (sibling fusions
+must share an operand) instead of in a kernel of its own.
 """
 
 import jax
@@ -66,10 +69,11 @@ def add_with_counts(
     """`add` of the rows that `batch` selects (`Selected`), and `counts`
     (`[counts_width(plan, C)]`) plus the sum of each row of `counted[C, B]` (integers), in
     its first C entries. The sums are taken in the batch's own reduction and added in
-    the per-row fields' kernel, where separate counts would be two more kernels. `fused`
-    lets a CUDA GPU fold the batch (its reduction, arrival ranks, EMA sum and ring
-    writes) in one kernel of our own (`_kernel`, where the spec has an EMA, a window or
-    group rows and the batch fits it; histograms and sketches keep XLA's kernels); the caller
+    the update of the per-row fields (`_update`), where separate counts would be two more
+    kernels. `fused` lets a CUDA GPU fold the batch (its reduction, arrival ranks, EMA sum
+    and ring writes, and where each row is one program the update of its fields) in one
+    kernel of our own (`_kernel`, where the spec has an EMA, a window or group rows and the
+    batch fits it; histograms and sketches keep XLA's kernels); the caller
     passes it only for a batch that is not split over devices, which that kernel cannot
     be. `interpret` (with `fused`) runs that kernel on
     any platform, in Pallas' interpret mode (slow: for tests).

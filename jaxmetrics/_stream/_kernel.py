@@ -22,7 +22,10 @@ most steps one block.
 
 A row longer than `_chunks.ONE_PROGRAM` entries is folded by one program per chunk of it
 (`_chunks`: how rows are chunked, the chunks' counts that XLA takes before the kernel,
-and their partial statistics combined after it).
+and their partial statistics combined after it). Where each row is one program (rows
+`_chunks.chunking` leaves whole, rows read from the lists), that program also folds the
+batch's statistics into its row's fields of the state (`_update`), in place, where XLA's
+update of those `[R]` fields is one more kernel per step.
 
 The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp, and tests
 check that both agree (the kernel in Pallas' interpret mode).
