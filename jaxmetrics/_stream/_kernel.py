@@ -162,7 +162,7 @@ def _kernel(
     reads every entry of the batch.
 
     With `updates` (one program per row; `(ema, listed sums)`) the program also folds the
-    batch's statistics into its row's fields of the state (`_update.update_row`), where
+    batch's statistics into its row's fields of the state (`_update.row_updater`), where
     XLA's update of the `[R]` fields is a kernel of its own; with listed sums (`[C, n]`,
     the listing's chunks') it sums its counted rows' from them."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
@@ -324,9 +324,6 @@ def _kernel(
         ]
         finish = _update.row_updater(ins, update_out, shift, step_ref[...], emas, windows, r)
 
-        def update_row(stats, csums):
-            finish(stats, csums if listed_sums is None else listed_sums)
-
     def write(xsum, xmin, xmax, p, s1, s2, wsum, total, nbad, csums):
         k = jnp.maximum(total, 1).astype(jnp.float32)
         mean_dev, m2 = p + s1 / k, jnp.maximum(s2 - s1 * s1 / k, 0)
@@ -339,7 +336,7 @@ def _kernel(
             stats = _update.Stats(
                 total, xsum, xmin, xmax, mean_dev, m2, nbad, wsum if ema else None
             )
-            update_row(stats, csums)
+            finish(stats, csums if listed_sums is None else listed_sums)
         if ema:
             floats[:, 5:6] = wsum
         if n_chunks > 1:
@@ -445,7 +442,7 @@ def _kernel(
             row = table[:, at : at + 1]  # [1, 1]
             pos_row = jnp.maximum(table[:, at + 1 : at + 2], 0)
             if updates:
-                pos = ring_in[2 * i + 1][...]  # the row's own (`update_row`)
+                pos = ring_in[2 * i + 1][...]  # the row's own (`_update.row_updater`)
             else:
                 pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
             ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))

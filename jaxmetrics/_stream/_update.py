@@ -188,7 +188,7 @@ def period_mean(total: jax.Array, total_c: jax.Array, n: jax.Array, chan: jax.Ar
 
 
 class InKernel(NamedTuple):
-    """The state's fields for the fused kernel to update each row itself (`update_row`):
+    """The state's fields for the fused kernel to update each row itself (`row_updater`):
     `fields` (`[R]` each), `rows` (`Rows`, its arrays numpy), and the counted rows'
     counts (`[packs * R]`, pack p of row r at `p * R + r`)."""
 
@@ -199,7 +199,7 @@ class InKernel(NamedTuple):
 
 def kernel_inputs(u: InKernel) -> list[jax.Array]:
     """The fields the kernel reads besides its own inputs (the mean, the step, the EMA's
-    offset and weight, the windows' `pos`), in `update_row`'s order: count, non-finite
+    offset and weight, the windows' `pos`), in `row_updater`'s order: count, non-finite
     count, m2, sum, min, max, with an EMA the EMA and its count, each window's `filled`,
     each `[R]`; then the counted rows' counts as `[packs, R]`."""
     f = u.fields
@@ -211,7 +211,7 @@ def kernel_inputs(u: InKernel) -> list[jax.Array]:
 
 def kernel_outputs(u: InKernel) -> list[jax.ShapeDtypeStruct]:
     """What the kernel writes: every field `update` changes, and the counted rows' counts
-    (`[packs, R]`); `OUT` names the positions of those that are also its inputs."""
+    (`[packs, R]`); `Out` names their positions."""
     f = u.fields
     outs = [*f.count, *f.nonfinite, f.mean, f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max, f.steps]
     if u.rows.is_ema is not None:
@@ -224,18 +224,18 @@ class Out:
     """Positions in `kernel_outputs`."""
 
     MEAN, STEPS = 4, 11
-    EMA, EMA_OFF, EMA_W = 12, 13, 14
+    EMA, EMA_OFF, EMA_W, EMA_N = 12, 13, 14, 15
 
     @staticmethod
     def pos(u: InKernel, i: int) -> int:
-        return 12 + 4 * (u.rows.is_ema is not None) + i
+        return Out.EMA + 4 * (u.rows.is_ema is not None) + i
 
     @staticmethod
     def of_inputs(u: InKernel) -> list[int]:
         """Per `kernel_inputs` entry, its output: each field is updated in place."""
         ema = u.rows.is_ema is not None
         windows = len(u.fields.pos)
-        out = [0, 1, 2, 3, 5, 6, 7, 8, 9, 10] + ([12, 15] if ema else [])
+        out = [0, 1, 2, 3, 5, 6, 7, 8, 9, 10] + ([Out.EMA, Out.EMA_N] if ema else [])
         first = Out.pos(u, windows)
         out += list(range(first, first + windows))
         return out + [first + windows + i for i in range(len(_packed(u)))]
