@@ -282,6 +282,7 @@ def row_updater(ins, outs, shift, steps, ema, windows, row) -> Callable[[Stats, 
         return [ins.pop(0)[...] for _ in range(n)]
 
     count_hi, count_lo, nf_hi, nf_lo, m2, m2_c, total, total_c, vmin, vmax = take(10)
+    # Without EMA rows `update` leaves these as they are and nothing writes them back.
     ema_fields = (shift * 0,) * 4
     rows = Rows(None, None, tuple((size, mine) for size, mine, _ in windows))
     if ema is not None:
