@@ -102,7 +102,7 @@ def add_with_counts(
         grouped = _segments.segment_batch(
             *(gathered(a) for a in sources), sp.groups, _segments.segment_rows(sp, shift)
         )
-        joined = _segments.joined(sp, _kernel.Batch(*folded[0]), grouped, counted.shape[0], width)
+        joined = _segments.joined(sp, _update.Batch(*folded[0]), grouped, counted.shape[0], width)
         folded = (joined, *folded[1:-1], None)
     stats, ema_data, window_data, hists, hist_steps, updated = folded
     k = stats[0]
@@ -130,14 +130,13 @@ def add_with_counts(
 
 
 def _updated(plan: StreamPlan, s: StreamState, stats, shift, counts: Count):
-    """The state's per-row fields with the batch's statistics (`_kernel.Batch`) folded in
+    """The state's per-row fields with the batch's statistics (`_update.Batch`) folded in
     (`_update.update`), and the counted rows' `counts` plus the batch's counted sums."""
-    k, bsum, bmin, bmax, mb, m2b, bad, ema_sum, counted_sums = stats
-    b = _update.Stats(k, bsum, bmin, bmax, mb, m2b, bad, ema_sum)
     wt = weight_dtype(plan.dtype)
-    fields = _update.update(_update.Fields.of(s), b, shift, update_rows(plan), wt)
+    fields = _update.update(_update.Fields.of(s), stats, shift, update_rows(plan), wt)
     packs = counts.lo.shape[0] // len(plan.rows) if plan.rows else 0
-    return fields, _count.add(counts, jnp.where(jnp.tile(k, packs) < 0, 0, counted_sums))
+    k = jnp.tile(stats.count, packs)
+    return fields, _count.add(counts, jnp.where(k < 0, 0, stats.counted_sums))
 
 
 def update_rows(plan: StreamPlan) -> _update.Rows:
@@ -387,7 +386,7 @@ def _advanced(w: Ring, k: jax.Array) -> Ring:
 
 
 def _fold(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, counted):
-    """The batch's statistics (`_kernel.Batch`), and what it adds that depends on
+    """The batch's statistics (`_update.Batch`), and what it adds that depends on
     arrival order, and its histograms: the data of each EMA ring and each window ring, and
     each histogram's counts with its `hist_steps`. `counted` has `counts_width` rows."""
     # One arrival rank shared by every row that needs one (EMA and window rows): how
@@ -417,7 +416,7 @@ def _fold(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, coun
 
     ema_data = tuple(ring(w, plan.stream_rows(g)) for g, w in zip(plan.ema_groups, s.ema_rings))
     window_data = tuple(ring(window_ring(g, w), g.rows) for g, w in zip(plan.windows, s.windows))
-    stats = _kernel.Batch(
+    stats = _update.Batch(
         *_batch(values, mask, nonfinite, shift, weight_dtype(plan.dtype), ema_in, counted)
     )
     return stats, ema_data, window_data, *_hists_add(plan, s, values, mask)

@@ -53,6 +53,7 @@ from ._chunks import (
 )
 from ._hists import HistIn, HistRows, add_in_kernel, count_in_kernel
 from ._selected import Selected
+from ._update import Batch
 
 MIN_BATCH = 32
 MAX_BATCH = 65536
@@ -333,9 +334,7 @@ def _kernel(
         floats[:, 3:4] = mean_dev
         floats[:, 4:5] = m2
         if updates:
-            stats = _update.Stats(
-                total, xsum, xmin, xmax, mean_dev, m2, nbad, wsum if ema else None
-            )
+            stats = Batch(total, xsum, xmin, xmax, mean_dev, m2, nbad, wsum if ema else None, None)
             finish(stats, csums if listed_sums is None else listed_sums)
         if ema:
             floats[:, 5:6] = wsum
@@ -515,23 +514,6 @@ def _update_aliases(update, first_in: int, first_out: int, rings, ema, first_rin
     for i in range(len(rings)):
         aliases[first_ring + 2 * i + 1] = first_out + out.pos(update, i)
     return aliases
-
-
-class Batch(NamedTuple):
-    """Per row of a batch (`[R]`): its count, sum, min and max (+-inf when empty), the mean
-    of its deviations from `shift` and their sum of squares around that mean, the sum of
-    its `nonfinite` flags, and with an EMA its weighted sum (else None); and `counted_sums`,
-    the sums of the counted rows (`[C]`)."""
-
-    count: jax.Array
-    sum: jax.Array
-    min: jax.Array
-    max: jax.Array
-    mean_dev: jax.Array
-    m2: jax.Array
-    nonfinite: jax.Array
-    ema: jax.Array | None
-    counted_sums: jax.Array
 
 
 def fold(

@@ -25,8 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _kernel
-from ._kernel import Batch
 from ._state import StreamPlan, StreamState
+from ._update import Batch
 
 ACCELERATOR_MIN_ENTRIES = 2**22
 """Segment rows x envs from which an accelerator folds group rows as segments."""
@@ -136,7 +136,7 @@ def segment_rows(sp: SegmentPlan, x: jax.Array) -> jax.Array:
 
 
 def joined(sp: SegmentPlan, dense: Batch, grouped: tuple[jax.Array, ...], c: int, width: int):
-    """Every row's batch statistics (`_kernel.Batch`, `[R]`; counted sums `[width]`) from
+    """Every row's batch statistics (`_update.Batch`, `[R]`; counted sums `[width]`) from
     the dense rows' (`dense`, counted sums of the `c` counted rows first) and the segment
     rows' (`grouped`, `segment_batch`'s seven); segment rows have no EMA sum."""
     both = [_assembled(sp, d, g) for d, g in zip(dense[:7], grouped)]

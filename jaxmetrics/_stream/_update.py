@@ -64,12 +64,14 @@ class Fields(NamedTuple):
         return s._replace(**fields, windows=windows)
 
 
-class Stats(NamedTuple):
-    """A batch's statistics per row (`_kernel.Batch`'s, less the counted sums): its count
-    `k`, sum, min and max, the mean of its deviations from `shift` and their sum of
-    squares, its non-finite flags, and with an EMA its weighted sum (else None)."""
+class Batch(NamedTuple):
+    """Per row of a batch (`[R]`; `[1, 1]` inside the fused kernel, its counted sums None
+    there): its count, sum, min and max (+-inf when empty), the mean of its deviations
+    from `shift` and their sum of squares around that mean, the sum of its `nonfinite`
+    flags, and with an EMA its weighted sum (else None); and `counted_sums`, the sums of
+    the counted rows (`[C]`)."""
 
-    k: jax.Array
+    count: jax.Array
     sum: jax.Array
     min: jax.Array
     max: jax.Array
@@ -77,6 +79,7 @@ class Stats(NamedTuple):
     m2: jax.Array
     nonfinite: jax.Array
     ema: jax.Array | None
+    counted_sums: jax.Array
 
 
 class Rows(NamedTuple):
@@ -89,11 +92,12 @@ class Rows(NamedTuple):
     windows: tuple[tuple[int, np.ndarray | jax.Array], ...]
 
 
-def update(f: Fields, b: Stats, shift, rows: Rows, wt) -> Fields:
-    """`f` with the batch's statistics `b` folded in (`shift`: what the batch's deviations
-    were taken from, the period's mean where it has values; `wt`: the dtype of weights)."""
+def update(f: Fields, b: Batch, shift, rows: Rows, wt) -> Fields:
+    """`f` with the batch's statistics `b` folded in (its counted sums aside; `shift`: what
+    the batch's deviations were taken from, the period's mean where it has values; `wt`:
+    the dtype of weights)."""
     dt = f.mean.dtype
-    k = b.k
+    k = b.count
     kf = k.astype(wt)
     na = _count.as_float(f.count, wt)
     n = na + kf
@@ -267,10 +271,10 @@ def from_kernel(u: InKernel, outs: list[jax.Array]) -> tuple[Fields, Count]:
     return fields, counts
 
 
-def row_updater(ins, outs, shift, steps, ema, windows, row) -> Callable[[Stats, list], None]:
+def row_updater(ins, outs, shift, steps, ema, windows, row) -> Callable[[Batch, list], None]:
     """Inside the fused kernel, by the program of row `row` (which folds the whole row):
     the row's fields read from `ins` now, so that the reads overlap the fold, and what
-    then updates them (`update`) with the batch's statistics (`Stats`) and the sums of its
+    then updates them (`update`) with the batch's statistics (`Batch`) and the sums of its
     counted rows (`[1, 1]` each) and writes them to `outs`. `ins` and `outs` are
     `kernel_inputs` and `kernel_outputs` (`[1, 1]` blocks of the row, the counts whole);
     `shift` and `steps` the row's mean and arrival step; `ema` its EMA's `(is_ema, coeff,
@@ -309,7 +313,7 @@ def row_updater(ins, outs, shift, steps, ema, windows, row) -> Callable[[Stats, 
     counted = [(pl.ds(p, 1), pl.ds(row, 1)) for p in range(ins[0].shape[0])] if ins else []
     counts = [Count(ins[0][at], ins[1][at]) for at in counted]
 
-    def finish(b: Stats, csums: list) -> None:
+    def finish(b: Batch, csums: list) -> None:
         new = update(f, b, shift, rows, jnp.float32)
         written = [*new.count, *new.nonfinite, new.mean, new.m2, new.m2_c, new.sum, new.sum_c]
         written += [new.min, new.max, new.steps]
@@ -320,6 +324,6 @@ def row_updater(ins, outs, shift, steps, ema, windows, row) -> Callable[[Stats, 
             out[...] = value
         words = outs[len(written) :]
         for at, count, sums in zip(counted, counts, csums):
-            words[0][at], words[1][at] = _count.add(count, jnp.where(b.k < 0, 0, sums))
+            words[0][at], words[1][at] = _count.add(count, jnp.where(b.count < 0, 0, sums))
 
     return finish
