@@ -200,11 +200,12 @@ def _kernel(
     r = pl.program_id(0)
     src = r if sources else entry(Table.SRC)
     kind, group = entry(Table.KIND), entry(Table.GROUP)
-    counted_rows = [jnp.where(r + rows * p < counted, r + rows * p, -1) for p in range(packs)]
-    listed_rows = updates[1] if updates else 0
-    counted_rows_listed = [
-        jnp.where(r + rows * p < listed_rows, r + rows * p, -1) for p in range(packs)
-    ]
+
+    def packed_rows(n: int) -> list[jax.Array]:
+        """Per pack p, this row's counted row `p * rows + r` of `n` (-1: past them)."""
+        return [jnp.where(r + rows * p < n, r + rows * p, -1) for p in range(packs)]
+
+    counted_rows = packed_rows(counted)
 
     def reader(
         start, n: int, fresh, cols=None
@@ -294,6 +295,8 @@ def _kernel(
         lo = chunk_id * chunk
         earlier, later = masked_in_around(mask_at, batch, lo, jnp.minimum(lo + chunk, batch))
     shift = shift_ref[...]
+    if ema:
+        coeff = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
 
     if updates:
         # The row's fields of the state are read here, before the fold, whose loads
@@ -301,24 +304,11 @@ def _kernel(
         ins = list(update_in)
         listed_sums = None
         if updates[1]:
-            # The counted rows' sums over the listing's chunks, pack p's at p * rows + r.
             sums_ref = ins.pop()
-            n = sums_ref.shape[1]
-            j = jax.lax.broadcasted_iota(jnp.int32, (1, pl.next_power_of_2(n)), 1)
-            listed_sums = [
-                row_sum(
-                    plt.load(
-                        sums_ref.at[jnp.broadcast_to(jnp.maximum(c, 0), j.shape), j],
-                        mask=(j < n) & (c >= 0),
-                        other=0,
-                    )
-                )
-                for c in counted_rows_listed
-            ]
+            listed_sums = [_reached.summed_in_kernel(sums_ref, c) for c in packed_rows(updates[1])]
         emas = None
         if ema:
-            c = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
-            emas = (c > 0, jnp.where(c > 0, c, 1.0), w_ref[...], eoff_ref[...])
+            emas = (coeff > 0, jnp.where(coeff > 0, coeff, 1.0), w_ref[...], eoff_ref[...])
         windows = [
             (size, table[:, Table.ring(i) : Table.ring(i) + 1] >= 0, ring_in[2 * i + 1][...])
             for i, size in enumerate(rings)
@@ -427,14 +417,13 @@ def _kernel(
         row_total = total if later is None else earlier + total + later
         k = jnp.maximum(total, 1).astype(jnp.float32)
         if ema:
-            c = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
-            log_keep = jnp.log2(1 - c)
+            log_keep = jnp.log2(1 - coeff)
             # The offset and seeding are worked out here from the state's own fields:
             # computed outside, XLA put them in the per-row update's kernel, which then
             # had to run before this one and copied seven fields to keep their old values.
             seeded = w_ref[...] > 0
             off = jnp.where(seeded, eoff_ref[...], shift)
-            seeding = ~seeded & (c > 0)
+            seeding = ~seeded & (coeff > 0)
         ring_at = []
         for i, size in enumerate(rings):
             at = Table.ring(i)
@@ -456,7 +445,7 @@ def _kernel(
             if ema:
                 # (1-c)^after; 0^0 = 1 for c = 1, as jnp.power gives.
                 decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(jnp.float32) * log_keep))
-                weight = jnp.where(seeding & (after == row_total - 1), decay, c * decay)
+                weight = jnp.where(seeding & (after == row_total - 1), decay, coeff * decay)
                 wsum = wsum + row_sum(weight * jnp.where(on, x - off, zero))
             # Only the last `size` arrivals go in, to consecutive slots in arrival order.
             # The rings are aliased to their outputs: what this program does not write
@@ -498,22 +487,6 @@ def _kernel(
             add()
         else:
             jax.lax.cond(chunk_id == 0, add, lambda: None)
-
-
-def _update_aliases(update, first_in: int, first_out: int, rings, ema, first_ring) -> dict:
-    """`fold`'s input-output aliases of the fields its kernel updates (`_update.Out`), each
-    in place: an output in a buffer of its own costs a copy into the loop's state."""
-    out = _update.Out
-    aliases = {first_in + i: first_out + o for i, o in enumerate(out.of_inputs(update))}
-    aliases[3] = first_out + out.MEAN  # the shift, the period's mean
-    aliases[4] = first_out + out.STEPS
-    if ema is not None:
-        first_ema = first_ring - 2
-        aliases[first_ema] = first_out + out.EMA_W
-        aliases[first_ema + 1] = first_out + out.EMA_OFF
-    for i in range(len(rings)):
-        aliases[first_ring + 2 * i + 1] = first_out + out.pos(update, i)
-    return aliases
 
 
 def fold(
@@ -660,8 +633,14 @@ def fold(
             **{first_ring + 2 * i: 2 + i for i in range(len(rings))},
             **{first_hist + i: 2 + len(rings) + i for i in range(len(words))},
             **(
-                _update_aliases(
-                    update, first_update, 2 + len(rings) + len(words), rings, ema, first_ring
+                _update.aliases(
+                    update,
+                    first_update,
+                    2 + len(rings) + len(words),
+                    shift=3,
+                    steps=4,
+                    ema=first_ring - 2 if ema is not None else None,
+                    pos=[first_ring + 2 * i + 1 for i in range(len(rings))],
                 )
                 if own
                 else {}

@@ -180,6 +180,15 @@ def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Rea
     return Reached(listed, counts), sums[0] if rows else counts[:0]
 
 
+def summed_in_kernel(sums_ref, row) -> jax.Array:
+    """Inside a kernel: counted row `row`'s sum (`[1, 1]`; 0 for `row` -1) from its chunks'
+    (`sums_ref`, `[C, n]`, `reached`'s), as `summed` adds them outside."""
+    n = sums_ref.shape[1]
+    j = jax.lax.broadcasted_iota(jnp.int32, (1, pl.next_power_of_2(n)), 1)
+    at = sums_ref.at[jnp.broadcast_to(jnp.maximum(row, 0), j.shape), j]
+    return jnp.sum(plt.load(at, mask=(j < n) & (row >= 0), other=0), axis=1, keepdims=True)
+
+
 def summed(sums: jax.Array) -> jax.Array:
     """The counted rows' sums (`[C]`) from their chunks' (`[C, n]`, `reached`'s), added
     elementwise: XLA computes them in the kernel that updates the per-row state, where a

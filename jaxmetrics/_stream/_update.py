@@ -245,6 +245,22 @@ class Out:
         return out + [first + windows + i for i in range(len(_packed(u)))]
 
 
+def aliases(u: InKernel, first_in: int, first_out: int, *, shift, steps, ema, pos) -> dict:
+    """The fused kernel's input-output aliases of the fields it updates, each in place (an
+    output in a buffer of its own costs a copy into the loop's state): `kernel_inputs`
+    from input `first_in` on, to `kernel_outputs` from output `first_out` on; and the
+    kernel's own inputs of the fields, at `shift` (the mean), `steps`, `ema` (the EMA's
+    weight, then its offset; None without EMA rows) and `pos` (each window's)."""
+    out = {first_in + i: first_out + o for i, o in enumerate(Out.of_inputs(u))}
+    out[shift] = first_out + Out.MEAN
+    out[steps] = first_out + Out.STEPS
+    if ema is not None:
+        out[ema], out[ema + 1] = first_out + Out.EMA_W, first_out + Out.EMA_OFF
+    for i, at in enumerate(pos):
+        out[at] = first_out + Out.pos(u, i)
+    return out
+
+
 def _packed(u: InKernel) -> list[jax.Array]:
     """The counted rows' counts as `[packs, R]` words (none without counted rows)."""
     rows = u.fields.mean.shape[0]
