@@ -525,10 +525,7 @@ class Metrics:
         ):
             if plan is None:
                 continue
-            rows = [
-                row if spec.nonfinite == "propagate" else _stream.count_overflow(row)
-                for spec, row in zip(plan.rows, _stream.compute(plan, st))
-            ]
+            rows = _stream.compute(plan, st)
             for i, spec in enumerate(plan.rows):
                 for stat in reported(spec.stats):
                     out[_tags.tag(self.prefixes[group], spec.name, stat)] = rows[i][stat]

@@ -27,7 +27,7 @@ class Statistic(NamedTuple):
         value on; "histogram": `HistogramData`; "window": the finite window contents.
       column: the `ConsoleWriter` column it is shown in (None: the last column).
       overflow: when the value counts as an overflow of the dtype (added to the metric's
-        `nonfinite` count and not written; see `_stream.count_overflow`). "period": not
+        `nonfinite` count and not written; see `_stream.compute`). "period": not
         finite although the period has values (non-finite values were left out, so the
         statistic itself overflowed); "inf": infinite (values near the dtype's limit);
         None: never.

@@ -23,7 +23,6 @@ disjoint workers into one) and `_compute` (the report statistics).
 """
 
 from ._compute import compute as compute
-from ._compute import count_overflow as count_overflow
 from ._fold import add as add
 from ._fold import add_with_counts as add_with_counts
 from ._fold import arrivals_after as arrivals_after

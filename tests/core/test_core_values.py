@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import jaxmetrics as jm
+from jaxmetrics import _statistics
 
 
 @pytest.mark.parametrize(
@@ -52,6 +53,47 @@ def test_half_precision_inputs_reduce_in_float32(dtype):
     assert host["Episode_Metrics/x"] == pytest.approx(ref.mean(), rel=1e-6)
     assert host["Episode_Metrics/x/std"] == pytest.approx(ref.std(), rel=1e-5)
     assert host["Episode_Metrics/x/sum"] == pytest.approx(ref.sum(), rel=1e-6)
+
+
+def test_each_row_counts_its_own_overflowed_statistics_whatever_the_rows_beside_it():
+    # The overflow count is taken over whole columns of rows (a statistic that only some
+    # rows have, percentiles that differ by row); the reference counts per row, from the
+    # host report and the registry's overflow kinds.
+    big = np.float32(3e38)
+    full = ("mean", "std", "min", "max", "sum", "count", jm.ema(0.5), jm.window(2, (50,)))
+    m = jm.Metrics(
+        logged={
+            "a": jm.Logged(stats=full),
+            "b": jm.Logged(stats=("mean", "std", "sum", "count", jm.window(3, (10, 90)))),
+            "c": jm.Logged(stats=full, nonfinite="propagate"),
+            "d": jm.Logged(stats=("mean", "std", "sum", "count", jm.ema(0.5), jm.quantiles((50,)))),
+            "e": jm.Logged(stats=("mean", "count", jm.window(2, (90,)))),
+        }
+    )
+    data = {
+        "a": [big, -big, big, -big],
+        "b": [1.0, 2.0, 3.0],
+        "c": [big, -big],
+        "d": [-big, big, big, big],
+        "e": [-big, big],
+    }
+    host = m.to_host(m.compute(m.log(m.init(0), data)))
+    counted = {}
+    for name in data:
+        stats = {i.stat: i.tag for i in m.tags if i.metric == name}
+        has = host[stats["count"]] > 0
+        bad = 0
+        for stat, tag in stats.items():
+            kind = _statistics.get(stat).overflow
+            v = np.asarray(host[tag], np.float64)
+            bad += int(kind == "inf" and np.isinf(v)) + int(
+                kind == "period" and has and not np.isfinite(v)
+            )
+        want = 0 if name == "c" else bad
+        assert host[stats["nonfinite"]] == want, name
+        counted[name] = bad
+    assert counted["a"] > 0 and counted["c"] > 0 and counted["d"] > 0 and counted["e"] > 0
+    assert counted["b"] == 0
 
 
 def test_overflowed_statistics_are_counted_and_raised_at_flush():
