@@ -226,8 +226,8 @@ class Logger(AbstractContextManager):
             array is fetched by the writer thread, not here.
 
         Returns:
-          The reset state. Only the report streams are new arrays; running episodes and
-          counters are the very arrays of `state` (no copy of O(num_envs) data).
+          The reset state. Only the period statistics are new arrays; running episodes,
+          counters, windows and EMAs are the very arrays of `state` (nothing is copied).
 
         Raises:
           NonFiniteError: a metric with policy "raise" saw non-finite values in an

@@ -20,7 +20,7 @@ from typing import Any, NamedTuple
 
 import jax
 
-from . import _tags
+from . import _stream, _tags
 from ._metrics import Metrics
 from ._report import derived_tags
 from ._sharding import mesh_of, placed, replicated
@@ -35,7 +35,7 @@ class StateShardings:
     """A state's tree of shardings as a key of the compiled flush (compared by value)."""
 
     def __init__(self, tree: MetricsState):
-        self.finished = tree.finished
+        self.fresh = _uncarried(tree.finished)  # of what a flush makes afresh
         leaves, treedef = jax.tree.flatten(tree)
         self._key = (tuple(leaves), treedef)
 
@@ -93,15 +93,20 @@ def _build(metrics: Metrics, runs: int, include_running: bool) -> ReportPrograms
         return metrics_ref().compute(state, include_running=include_running)  # type: ignore[union-attr]
 
     shapes = jax.eval_shape(lambda: report(metrics.init(1)))
-    order = [i.tag for i in tag_table(metrics, include_running) if i.tag in shapes]
-    packer = Packer(shapes, order, metrics.dtype)
+    infos = [i for i in tag_table(metrics, include_running) if i.tag in shapes]
+    # Each statistic's tags side by side: the packed arrays are then a few whole columns
+    # of the report (XLA merges adjacent slices of one array), not a piece per tag.
+    layout = [i.tag for i in sorted(infos, key=lambda i: i.stat)]
+    packer = Packer(shapes, [i.tag for i in infos], metrics.dtype, layout)
 
     def compute(state: MetricsState) -> Packed:
         return packer.pack(report(state))
 
     def compute_reset(state: MetricsState) -> tuple[Packed, Any, Any]:
+        # Only what the new period makes afresh: a jitted call's every output is a new
+        # buffer, so the fields it carries on would be copied at every flush.
         new = metrics_ref().reset_period(state)  # type: ignore[union-attr]
-        return compute(state), new.finished, new.logged
+        return compute(state), _uncarried(new.finished), _uncarried(new.logged)
 
     batched = compute_reset if runs == 1 else jax.vmap(compute_reset)
 
@@ -114,7 +119,7 @@ def _build(metrics: Metrics, runs: int, include_running: bool) -> ReportPrograms
             packed, finished, logged = batched(state)
             if mesh is None:
                 return packed, finished, logged
-            return replicated(packed, mesh), placed(finished, shardings.finished), logged
+            return replicated(packed, mesh), placed(finished, shardings.fresh), logged
 
         return jax.jit(run)
 
@@ -123,6 +128,15 @@ def _build(metrics: Metrics, runs: int, include_running: bool) -> ReportPrograms
         shardings = (
             None if mesh is None else StateShardings(jax.tree.map(lambda x: x.sharding, state))
         )
-        return compiled(mesh, shardings)(state)
+        packed, finished, logged = compiled(mesh, shardings)(state)
+        return packed, _carried(finished, state.finished), _carried(logged, state.logged)
 
     return ReportPrograms(packer, compute, report_and_reset)
+
+
+def _uncarried(s: _stream.StreamState | None) -> _stream.StreamState | None:
+    return None if s is None else _stream.uncarried(s)
+
+
+def _carried(new: _stream.StreamState | None, old: Any) -> _stream.StreamState | None:
+    return None if new is None else _stream.carried(new, old)

@@ -35,6 +35,7 @@ class Packer:
         `jax.ShapeDtypeStruct` (anything with a `shape`), or a `Count` of them.
       order: the tags in the order `unpack` returns them (every tag of `report`).
       dtype: the float dtype of the packed statistics.
+      layout: the tags in the order they lie in the packed arrays (default `order`).
 
     Attributes:
       num_floats: F, the length of the packed floats.
@@ -42,20 +43,28 @@ class Packer:
       dtype: the float dtype of the packed statistics.
     """
 
-    def __init__(self, report: Mapping[str, Any], order: Sequence[str], dtype: Any):
-        if sorted(order) != sorted(report):
+    def __init__(
+        self,
+        report: Mapping[str, Any],
+        order: Sequence[str],
+        dtype: Any,
+        layout: Sequence[str] | None = None,
+    ):
+        layout = order if layout is None else layout
+        if sorted(order) != sorted(report) or sorted(layout) != sorted(report):
             raise ValueError("Packer: `order` must list every tag of the report once.")
         self.dtype = jnp.dtype(dtype)
-        slots, f_off, c_off = [], 0, 0
-        for tag in order:
+        slots, f_off, c_off = {}, 0, 0
+        for tag in layout:
             v = report[tag]
             if isinstance(v, Count):
-                slots.append(_Slot(tag, True, c_off, tuple(v.hi.shape)))
+                slots[tag] = _Slot(tag, True, c_off, tuple(v.hi.shape))
                 c_off += math.prod(v.hi.shape)
             else:
-                slots.append(_Slot(tag, False, f_off, tuple(v.shape)))
+                slots[tag] = _Slot(tag, False, f_off, tuple(v.shape))
                 f_off += math.prod(v.shape)
-        self._slots = tuple(slots)
+        self._layout = tuple(slots[tag] for tag in layout)
+        self._slots = tuple(slots[tag] for tag in order)
         self.num_floats, self.num_counts = f_off, c_off
 
     def pack(self, report: Mapping[str, Any]) -> tuple[jax.Array, jax.Array]:
@@ -67,7 +76,7 @@ class Packer:
         if sorted(report) != sorted(s.tag for s in self._slots):
             raise ValueError(self._DIFFERS)
         floats, his, los = [], [], []
-        for s in self._slots:
+        for s in self._layout:
             v = report[s.tag]
             a = v.hi if isinstance(v, Count) else jnp.asarray(v)
             if isinstance(v, Count) != s.is_count or tuple(a.shape) != s.shape:

@@ -37,9 +37,12 @@ from ._merge import pad_ema_history as pad_ema_history
 from ._segments import SegmentPlan as SegmentPlan
 from ._segments import segment_batch as segment_batch
 from ._selected import Selected as Selected
+from ._state import CARRIED as CARRIED
 from ._state import MAX_EMA_HISTORY as MAX_EMA_HISTORY
 from ._state import Ring as Ring
 from ._state import StreamPlan as StreamPlan
 from ._state import StreamState as StreamState
+from ._state import carried as carried
 from ._state import init as init
 from ._state import reset_period as reset_period
+from ._state import uncarried as uncarried

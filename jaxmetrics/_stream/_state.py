@@ -260,18 +260,23 @@ def init(plan: StreamPlan, ema_history: bool = False) -> StreamState:
     )
 
 
+# The fields a new period keeps: EMA, windows and the arrival step run across periods.
+CARRIED = ("ema", "ema_off", "ema_w", "ema_n", "ema_rings", "steps", "windows")
+
+
 def reset_period(plan: StreamPlan, s: StreamState) -> StreamState:
     """Clears the period statistics; EMA, windows and the arrival step carry on."""
-    fresh = init(plan)
-    return fresh._replace(
-        ema=s.ema,
-        ema_off=s.ema_off,
-        ema_w=s.ema_w,
-        ema_n=s.ema_n,
-        ema_rings=s.ema_rings,
-        steps=s.steps,
-        windows=s.windows,
-    )
+    return carried(init(plan), s)
+
+
+def carried(new: StreamState, old: StreamState) -> StreamState:
+    """`new` with `old`'s `CARRIED` fields (the very arrays)."""
+    return new._replace(**{f: getattr(old, f) for f in CARRIED})
+
+
+def uncarried(s: StreamState) -> StreamState:
+    """`s` with its `CARRIED` fields None: what a new period makes afresh."""
+    return s._replace(**dict.fromkeys(CARRIED))
 
 
 def weight_dtype(dt: jnp.dtype) -> jnp.dtype:

@@ -18,6 +18,7 @@ import pytest
 from tensorboard.backend.event_processing import event_accumulator as ea
 
 import jaxmetrics as jm
+from jaxmetrics import _stream
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -98,6 +99,7 @@ _CHILD = """
 import sys, time
 import jax.numpy as jnp
 import jaxmetrics as jm
+from jaxmetrics import _stream
 
 root, n = sys.argv[1], int(sys.argv[2])
 metrics = jm.Metrics(logged=["x"])
@@ -388,6 +390,52 @@ def test_packer_layout_comes_from_shapes_before_anything_is_traced():
         packer.pack({k: v for k, v in report.items() if k != "Counters/u"})
 
 
+def test_packer_lays_the_report_out_in_its_layout_and_unpacks_it_in_its_order():
+    from jaxmetrics._transfer import Packer
+
+    metrics = jm.Metrics(logged={"x": jm.Logged(stats=("mean", "max", jm.window(2)))})
+    order = [i.tag for i in metrics.tags]
+    state = metrics.log(metrics.init(1), {"x": jnp.array([1.0, 5.0, 2.0], jnp.float32)})
+    report = metrics.compute(state)
+    packer = Packer(jax.eval_shape(lambda: report), order, jnp.float32, layout=order[::-1])
+    floats, counts = (np.asarray(a) for a in jax.jit(packer.pack)(report))
+    got = packer.unpack(floats, counts)
+    want = metrics.to_host(report)
+    assert list(got) == order
+    assert all(np.array_equal(got[t], want[t], equal_nan=True) for t in order)
+    # The last float tag of the order lies first: the window's values, newest last.
+    last = [t for t in order if not isinstance(report[t], jm.Count)][-1]
+    assert last == "Train/x/window_values" and list(floats[:2]) == [5.0, 2.0]
+
+
+def test_a_flush_hands_back_the_carried_fields_themselves_and_fresh_period_statistics():
+    stats = ("mean", "count", jm.ema(0.5), jm.window(3))
+    metrics = jm.Metrics(
+        terms={"r": jm.Term(lambda x: x, reduce="sum", stats=stats)},
+        logged={"x": jm.Logged(stats=stats)},
+    )
+    state = metrics.init(4)
+    state = metrics.update(state, jnp.arange(4.0), jnp.array([True, False, True, True]))
+    state = metrics.log(state, {"x": jnp.array([1.0, 2.0], jnp.float32)})
+    with jm.Logger(metrics, [jm.MemoryWriter()]) as logger:
+        new = logger.flush(state, 0)
+    fresh = metrics.init(4)
+    for old, out, init in (
+        (state.finished, new.finished, fresh.finished),
+        (state.logged, new.logged, fresh.logged),
+    ):
+        for field in _stream.CARRIED:  # not copied: the very arrays
+            pairs = zip(jax.tree.leaves(getattr(old, field)), jax.tree.leaves(getattr(out, field)))
+            assert all(a is b for a, b in pairs), field
+        for field in set(old._fields) - set(_stream.CARRIED):
+            for a, b in zip(
+                jax.tree.leaves(getattr(out, field)), jax.tree.leaves(getattr(init, field))
+            ):
+                assert np.array_equal(a, b, equal_nan=True), field
+        assert int(old.count.lo.sum()) > 0
+    assert new.running is state.running
+
+
 def test_counters_past_2_to_the_32_reach_writers_exactly():
     metrics = jm.Metrics(counters=["samples"])
     memory = jm.MemoryWriter()
@@ -432,6 +480,7 @@ _CHILD_NO_CLOSE = """
 import sys, time
 import jax.numpy as jnp
 import jaxmetrics as jm
+from jaxmetrics import _stream
 
 class Slow(jm.JsonlWriter):
     def write(self, record):
