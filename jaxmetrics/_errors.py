@@ -51,6 +51,7 @@ class _UncheckedReport(NamedTuple):
     step: Any  # int, or an int array of shape () or [len(runs)]
     runs: tuple[int, ...]
     counts: Any  # packed counts, [len(runs), 2, K] (the leading axis may be absent for one)
+    joined: bool  # `counts` is a flush's `Packer.joined` report, [len(runs), W] or [W]
 
 
 # The modules between the user's line and `warnings.warn`: a warning names the first
@@ -98,10 +99,13 @@ class CallerReports:
         with self._lock:
             self._notices.append(message)
 
-    def check_later(self, step: Any, runs: tuple[int, ...], counts: Any) -> None:
-        """Keeps a report's packed counts for `surface` to check for non-finite values."""
+    def check_later(
+        self, step: Any, runs: tuple[int, ...], counts: Any, joined: bool = False
+    ) -> None:
+        """Keeps a report's packed counts (`joined`: the whole report, `Packer.joined`) for
+        `surface` to check for non-finite values."""
         with self._lock:
-            self._unchecked.append(_UncheckedReport(step, runs, counts))
+            self._unchecked.append(_UncheckedReport(step, runs, counts, joined))
 
     def take_errors(self) -> list[BaseException]:
         """The errors kept so far (they are no longer kept)."""
@@ -138,7 +142,8 @@ class CallerReports:
     def _nonfinite_messages(self, report: _UncheckedReport) -> list[tuple[str, str]]:
         """(message, policy) per metric of the report that saw non-finite values."""
         n = len(report.runs)
-        counts = np.reshape(np.asarray(report.counts), (n, 2, -1))
+        counts = self._packer.parted(report.counts)[1] if report.joined else report.counts
+        counts = np.reshape(np.asarray(counts), (n, 2, -1))
         steps = np.broadcast_to(np.asarray(report.step), (n,))
         out = []
         for i, run in enumerate(report.runs):

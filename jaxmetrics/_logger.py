@@ -2,8 +2,8 @@
 
 A value's way from `flush` to a writer, one module a step:
 1. `_programs`: the jitted report program computes and resets the period, and packs the
-   report into two arrays (`_transfer.Packer`); `flush` starts their copy to the host;
-2. `_writer_thread`: the job that writes them is queued for the writer thread;
+   report into one array (`_transfer.Packer`); `flush` starts its copy to the host;
+2. `_writer_thread`: the job that writes it is queued for the writer thread;
 3. `_runs`: unpacks each run's part and builds its `Record` (`_report.RecordBuilder`);
 4. the run's writers get the record, and `_seeds_run` the seeds summary's.
 `emit` enters at step 2 through `_emit` (in-graph) and `_emitted` (host); `write_history`
@@ -248,15 +248,14 @@ class Logger(AbstractContextManager):
         # What earlier flushes left to report is raised before this one acts.
         self._reports.surface()
         with self._thread.reserved("flush") as put:
-            (floats, counts), finished, logged = self._programs.report_and_reset(state)
-            floats.copy_to_host_async()
-            counts.copy_to_host_async()
+            words, finished, logged = self._programs.report_and_reset(state)
+            words.copy_to_host_async()
             timers = self._timers.take()
-            put(functools.partial(self._runs.write_flush, floats, counts, step, timers))
-        self.report_nbytes = floats.nbytes + counts.nbytes
+            put(functools.partial(self._runs.write_flush, words, step, timers))
+        self.report_nbytes = words.nbytes
         if is_int(step):
             self._last_step = int(step)
-        self._reports.check_later(step, tuple(range(self.runs)), counts)
+        self._reports.check_later(step, tuple(range(self.runs)), words, joined=True)
         return state._replace(finished=finished, logged=logged)
 
     def timer(self, name: str) -> AbstractContextManager[None]:
@@ -295,8 +294,9 @@ class Logger(AbstractContextManager):
         check_state(state, self.runs)
         if not is_int(step) or not 0 <= step < 2**63:
             raise ValueError(f"Logger.resume: step must be an int in [0, 2^63), got {step!r}.")
-        (_, counts), _, _ = self._programs.report_and_reset(state)
-        totals = self._programs.packer.totals(counts, self.runs)
+        words, _, _ = self._programs.report_and_reset(state)
+        packer = self._programs.packer
+        totals = packer.totals(packer.parted(words)[1], self.runs)
         now = time.time()
         with self._thread.entry("resume"):
             self._runs.resume(now, totals, int(step))

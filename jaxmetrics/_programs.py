@@ -53,13 +53,14 @@ class ReportPrograms(NamedTuple):
       packer: packs and unpacks the report.
       compute: in-graph, one run's state -> its packed report.
       report_and_reset: host, a concrete state (`[runs]` leading axis for several runs)
-        -> `(packed report, finished, logged)`: the report and the reset statistics, by
-        the jitted program compiled for the state's mesh and shardings.
+        -> `(report, finished, logged)`: the packed report as one array (`[runs]` of
+        `Packer.joined`) and the reset statistics, by the jitted program compiled for the
+        state's mesh and shardings.
     """
 
     packer: Packer
     compute: Callable[[MetricsState], Packed]
-    report_and_reset: Callable[[MetricsState], tuple[Packed, Any, Any]]
+    report_and_reset: Callable[[MetricsState], tuple[jax.Array, Any, Any]]
 
 
 _CACHE: weakref.WeakKeyDictionary[Metrics, dict[tuple[int, bool], ReportPrograms]] = (
@@ -102,11 +103,12 @@ def _build(metrics: Metrics, runs: int, include_running: bool) -> ReportPrograms
     def compute(state: MetricsState) -> Packed:
         return packer.pack(report(state))
 
-    def compute_reset(state: MetricsState) -> tuple[Packed, Any, Any]:
+    def compute_reset(state: MetricsState) -> tuple[jax.Array, Any, Any]:
         # Only what the new period makes afresh: a jitted call's every output is a new
         # buffer, so the fields it carries on would be copied at every flush.
         new = metrics_ref().reset_period(state)  # type: ignore[union-attr]
-        return compute(state), _uncarried(new.finished), _uncarried(new.logged)
+        words = packer.joined(compute(state))
+        return words, _uncarried(new.finished), _uncarried(new.logged)
 
     batched = compute_reset if runs == 1 else jax.vmap(compute_reset)
 
@@ -115,21 +117,21 @@ def _build(metrics: Metrics, runs: int, include_running: bool) -> ReportPrograms
         # On a sharded state's mesh: the packed report whole on every device, so that
         # every process can read its copy (O(metrics) bytes cross devices), and the
         # reset statistics split as they came in, so the next steps stay shard-local.
-        def run(state: MetricsState) -> tuple[Packed, Any, Any]:
-            packed, finished, logged = batched(state)
+        def run(state: MetricsState) -> tuple[jax.Array, Any, Any]:
+            words, finished, logged = batched(state)
             if mesh is None:
-                return packed, finished, logged
-            return replicated(packed, mesh), placed(finished, shardings.fresh), logged
+                return words, finished, logged
+            return replicated(words, mesh), placed(finished, shardings.fresh), logged
 
         return jax.jit(run)
 
-    def report_and_reset(state: MetricsState) -> tuple[Packed, Any, Any]:
+    def report_and_reset(state: MetricsState) -> tuple[jax.Array, Any, Any]:
         mesh = mesh_of(state)
         shardings = (
             None if mesh is None else StateShardings(jax.tree.map(lambda x: x.sharding, state))
         )
-        packed, finished, logged = compiled(mesh, shardings)(state)
-        return packed, _carried(finished, state.finished), _carried(logged, state.logged)
+        words, finished, logged = compiled(mesh, shardings)(state)
+        return words, _carried(finished, state.finished), _carried(logged, state.logged)
 
     return ReportPrograms(packer, compute, report_and_reset)
 

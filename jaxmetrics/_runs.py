@@ -117,11 +117,12 @@ class RunWriters:
             self._builders[run].start(wall_time, totals[run])
         self._written_step = [step] * self.runs
 
-    def write_flush(self, floats: Any, counts: Any, step: Any, timers: dict[str, float]) -> None:
-        """Writes a flush's report: every run's record at `step` (an int, or an int array
-        of shape () or [runs])."""
-        f = np.reshape(np.asarray(floats), (self.runs, -1))
-        c = np.reshape(np.asarray(counts), (self.runs, 2, -1))
+    def write_flush(self, words: Any, step: Any, timers: dict[str, float]) -> None:
+        """Writes a flush's report (`Packer.joined`, `[runs]` of them for several runs):
+        every run's record at `step` (an int, or an int array of shape () or [runs])."""
+        floats, counts = self._packer.parted(words)
+        f = np.reshape(floats, (self.runs, -1))
+        c = np.reshape(counts, (self.runs, 2, -1))
         # Stamped once the device has computed the report (the fetches above wait for
         # it), not when `flush` dispatched it: a host loop runs ahead of the device, so
         # dispatch times would make the first rates (`/per_sec`) far too high.

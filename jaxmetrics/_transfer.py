@@ -3,7 +3,8 @@
 A report is a dict of ~10 small arrays per metric; copying and fetching each one costs a
 dispatch and a Python call per leaf, which dominates a flush long before the bytes do.
 `pack` concatenates every float statistic into one vector and every exact count (the
-`Count` hi/lo words) into one `[2, K]` uint32 array, so a flush moves two arrays.
+`Count` hi/lo words) into one `[2, K]` uint32 array, and `joined` makes those one uint32
+array, so a flush moves one.
 `unpack` restores the host report (floats, exact Python ints, numpy arrays), like
 `Metrics.to_host`.
 """
@@ -93,6 +94,21 @@ class Packer:
             else jnp.zeros((2, 0), jnp.uint32)
         )
         return f, c
+
+    def joined(self, packed: tuple[jax.Array, jax.Array]) -> jax.Array:
+        """In-graph: `pack`'s floats and counts as one uint32 array `[F * w + 2K]` (w the
+        words of a float), so that a flush copies one array to the host, not two."""
+        floats, counts = packed
+        bits = jax.lax.bitcast_convert_type(floats, jnp.uint32).reshape(-1)
+        return jnp.concatenate([bits, counts.reshape(-1)])
+
+    def parted(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Host: `joined`'s inverse, over any leading axes: `(floats [..., F], counts
+        [..., 2, K])`."""
+        words = np.asarray(words)
+        n = self.num_floats * self.dtype.itemsize // 4
+        floats = np.ascontiguousarray(words[..., :n]).view(self.dtype)
+        return floats, words[..., n:].reshape(*words.shape[:-1], 2, self.num_counts)
 
     _DIFFERS = (
         "the report's layout differs from the one the Logger was built for; a Logger "

@@ -408,6 +408,24 @@ def test_packer_lays_the_report_out_in_its_layout_and_unpacks_it_in_its_order():
     assert last == "Train/x/window_values" and list(floats[:2]) == [5.0, 2.0]
 
 
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_a_joined_report_parts_into_its_floats_and_counts_bit_for_bit(dtype):
+    from jaxmetrics._transfer import Packer
+
+    with jax.enable_x64(dtype == "float64"):
+        metrics = jm.Metrics(logged=["x"], counters=["u"], dtype=dtype)
+        shapes = jax.eval_shape(lambda: metrics.compute(metrics.init(1)))
+        packer = Packer(shapes, [i.tag for i in metrics.tags], dtype)
+        floats = jnp.asarray([-0.0, np.nan, -np.inf, 1e-45], dtype)  # signs, payloads
+        counts = jnp.asarray([[0, 1, 2**32 - 1], [5, 2**31, 7]], jnp.uint32)
+        runs = jax.vmap(packer.joined)((jnp.stack([floats, -floats]), jnp.stack([counts] * 2)))
+        f, c = packer.parted(np.asarray(runs))
+    assert f.dtype == np.dtype(dtype) and f.shape == (2, 4) and c.shape == (2, 2, 3)
+    want = np.stack([np.asarray(floats), -np.asarray(floats)])
+    assert f.tobytes() == want.tobytes()
+    assert (c == np.asarray(counts)).all()
+
+
 def test_a_flush_hands_back_the_carried_fields_themselves_and_fresh_period_statistics():
     stats = ("mean", "count", jm.ema(0.5), jm.window(3))
     metrics = jm.Metrics(
