@@ -145,7 +145,7 @@ def count_in_kernel(bins: int, spec, blocks, values_of, total, words) -> None:
     its row of a histogram of `bins` bins, if it has one. `spec` is the row's table columns
     as three `[1, 1]` slices (Triton's arrays are powers of two): its histogram row (-1:
     none) and the float32 bits of `lo` and `hi`. `blocks` and `values_of` read the row
-    (`_kernel`'s `fold_blocks`), `total` is its masked-in entries, `words` the histogram's
+    (`_program`'s `fold_blocks`), `total` is its masked-in entries, `words` the histogram's
     low and high words in, then out."""
     row = jnp.sum(spec[0])
     lo, hi = (jax.lax.bitcast_convert_type(c, jnp.float32) for c in spec[1:])

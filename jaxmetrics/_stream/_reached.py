@@ -7,7 +7,7 @@ episodes end (1% of them at an episode of 100 steps). Folded from the batch, eac
 the entries that reach any are sources x arrivals. Listed first, per source row, in
 entry order (each chunk of the row lists its reached entries in its own segment of the
 list and counts them), every row of the batch, group rows and overall rows alike, is
-then read from its source row's list (`_kernel`, `gather`): the chunks' counts place each
+then read from its source row's list (`_program`, `gather`): the chunks' counts place each
 of the list's first entries in its segment, as many as the list has, in the order of
 the batch, so that ranks, EMA weights and ring slots come out as from the batch itself.
 The chunks need no count of the entries before them: the listing is one kernel. A step

@@ -440,10 +440,10 @@ def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     # A batch of one program that is not a power of two is read in two blocks, the second
     # overlapping the first (in all but one entry at 513): the arrival ranks, the moments
     # and the ring writes across blocks, against the same loop.
-    from jaxmetrics._stream import _chunks, _kernel
+    from jaxmetrics._stream import _chunks
 
     assert _chunks.chunking(rows, batch, False, ranked=True) == (batch, 1, False)
-    assert _kernel.blocking(batch)[1] == 2
+    assert _chunks.blocking(batch)[1] == 2
     check_fused_kernel(rows, batch, size, seed)
 
 
