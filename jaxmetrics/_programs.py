@@ -35,7 +35,7 @@ class StateShardings:
     """A state's tree of shardings as a key of the compiled flush (compared by value)."""
 
     def __init__(self, tree: MetricsState):
-        self.fresh = _uncarried(tree.finished)  # of what a flush makes afresh
+        self.fresh = _uncarried(tree.finished)  # the shardings of what a flush makes afresh
         leaves, treedef = jax.tree.flatten(tree)
         self._key = (tuple(leaves), treedef)
 

@@ -53,7 +53,7 @@ class Packer:
     ):
         layout = order if layout is None else layout
         if sorted(order) != sorted(report) or sorted(layout) != sorted(report):
-            raise ValueError("Packer: `order` must list every tag of the report once.")
+            raise ValueError("Packer: `order` and `layout` must list every tag of the report once.")
         self.dtype = jnp.dtype(dtype)
         slots, f_off, c_off = {}, 0, 0
         for tag in layout:

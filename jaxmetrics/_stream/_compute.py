@@ -8,7 +8,16 @@ import numpy as np
 
 from .. import _count, _sketch, _spec, _statistics
 from .._count import Count
-from ._state import StreamPlan, StreamState, ordered, take_rows, weight_dtype, window_ring
+from ._state import (
+    Ring,
+    StreamPlan,
+    StreamState,
+    WindowGroup,
+    ordered,
+    take_rows,
+    weight_dtype,
+    window_ring,
+)
 
 
 def _percentiles(sorted_vals: jax.Array, filled: jax.Array, ps: tuple[float, ...], dt):
@@ -34,8 +43,9 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
 
     A row whose metric leaves non-finite values out (any policy but "propagate") also
     counts in its `nonfinite` the reported statistics that overflowed the dtype (which
-    can, and how, is the registry's `overflow`). Such a statistic is not written, so the
-    count is what makes the loss visible (warned about or raised at flush).
+    statistics can overflow, and how, the registry's `overflow` says). Such a statistic is
+    not written, so the count is what makes the loss visible (warned about or raised at
+    flush).
     """
     dt = plan.dtype
     every = tuple(range(len(plan.rows)))
@@ -75,7 +85,11 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
     return out
 
 
-def _window_columns(plan: StreamPlan, g, w, steps) -> list[tuple[str, tuple[int, ...], jax.Array]]:
+def _window_columns(
+    plan: StreamPlan, g: WindowGroup, w: Ring, steps: jax.Array
+) -> list[tuple[str, tuple[int, ...], jax.Array]]:
+    """A window group's statistics as `compute`'s columns, from its ring `w` (its rows
+    only) and their arrival steps `steps`."""
     dt = plan.dtype
     vals, _, valid = ordered(w, steps, dt)
     filled = w.filled
