@@ -347,9 +347,8 @@ def program(
             # The offset and seeding are worked out here from the state's own fields:
             # computed outside, XLA put them in the per-row update's kernel, which then
             # had to run before this one and copied seven fields to keep their old values.
-            seeded = w_ref[...] > 0
-            off = jnp.where(seeded, eoff_ref[...], shift)
-            seeding = ~seeded & (coeff > 0)
+            off, seeding = _update.ema_offset(w_ref[...], eoff_ref[...], shift)
+            seeding = seeding & (coeff > 0)
         ring_at = []
         for i, size in enumerate(rings):
             at = Table.ring(i)
