@@ -216,12 +216,17 @@ def kernel_inputs(u: InKernel) -> list[jax.Array]:
 def kernel_outputs(u: InKernel) -> list[jax.ShapeDtypeStruct]:
     """What the kernel writes: every field `update` changes, and the counted rows' counts
     (`[packs, R]`); `Out` names their positions."""
-    f = u.fields
-    outs = [*f.count, *f.nonfinite, f.mean, f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max, f.steps]
-    if u.rows.is_ema is not None:
-        outs += [f.ema, f.ema_off, f.ema_w, f.ema_n]
-    outs += [*f.pos, *f.filled, *_packed(u)]
+    outs = _written(u.fields, u.rows.is_ema is not None) + _packed(u)
     return [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in outs]
+
+
+def _written(f: Fields, ema: bool) -> list[jax.Array]:
+    """The fields `update` changes, in the kernel's output order (`Out`); the EMA's only
+    with EMA rows (`ema`)."""
+    out = [*f.count, *f.nonfinite, f.mean, f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max, f.steps]
+    if ema:
+        out += [f.ema, f.ema_off, f.ema_w, f.ema_n]
+    return out + [*f.pos, *f.filled]
 
 
 class Out:
@@ -330,12 +335,7 @@ def row_updater(ins, outs, shift, steps, ema, windows, row) -> Callable[[Batch, 
     counts = [Count(ins[0][at], ins[1][at]) for at in counted]
 
     def finish(b: Batch, csums: list) -> None:
-        new = update(f, b, shift, rows, jnp.float32)
-        written = [*new.count, *new.nonfinite, new.mean, new.m2, new.m2_c, new.sum, new.sum_c]
-        written += [new.min, new.max, new.steps]
-        if ema is not None:
-            written += [new.ema, new.ema_off, new.ema_w, new.ema_n]
-        written += [*new.pos, *new.filled]
+        written = _written(update(f, b, shift, rows, jnp.float32), ema is not None)
         for out, value in zip(outs, written):
             out[...] = value
         words = outs[len(written) :]
