@@ -457,8 +457,6 @@ def _fold_fused(
         ema = None
         if plan.ema_rows:
             ema = _kernel.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off)
-        groups = sum(k >= 0 for k in batch.kind)
-        listed = _reached.listed(groups, batch.batch, ema is not None or bool(rings))
         # Group rows read from the lists count their few entries into the histograms in
         # the kernel, where XLA would find each entry's group row and scatter every entry
         # of the batch (docs/benchmarks.md, "Per-group statistics"); otherwise XLA
@@ -503,10 +501,8 @@ def _fold_fused(
     # fields of the state, where XLA's update is one more kernel (docs/benchmarks.md,
     # "Scaling"); not with EMA rings (exact merges), which XLA advances.
     ranked = bool(plan.ema_rows or plan.windows)
-    groups = sum(k >= 0 for k in batch.kind)
-    one = _reached.listed(groups, batch.batch, ranked) or _kernel.one_program(
-        rows, batch.batch, batch.grouped, ranked
-    )
+    listed = _reached.listed(sum(k >= 0 for k in batch.kind), batch.batch, ranked)
+    one = listed or _kernel.one_program(rows, batch.batch, batch.grouped, ranked)
     own = counts is not None and one and not any(r.size for r in s.ema_rings)
     args = (s, batch, shift, counted)
     if interpret:
