@@ -457,11 +457,11 @@ def _fold_fused(
         ema = None
         if plan.ema_rows:
             ema = _kernel.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off)
-        # Group rows read from the lists count their few entries into the histograms in
-        # the kernel, where XLA would find each entry's group row and scatter every entry
-        # of the batch (docs/benchmarks.md, "Per-group statistics"); otherwise XLA
-        # scatters and the kernel adds the counts.
-        here = listed and batch.grouped
+        # Rows read from the lists count their entries into the histograms in the kernel,
+        # where XLA would scatter every entry of the batch (and for group rows first find
+        # each entry's row: docs/benchmarks.md, "Per-group statistics" and "Scaling");
+        # otherwise XLA scatters and the kernel adds the counts.
+        here = listed
         hist_rows = (
             tuple(_hists.HistRows.of(g, where_of(g.rows)) for g in plan.hists) if here else ()
         )

@@ -1,14 +1,16 @@
 """A batch counted into the histograms: each value's slot, the step's counts scattered
 into the state's zero array (`hist_steps`), and their add to the exact counts, by XLA
 (`add`) or, on a CUDA GPU, inside the fused kernel (`HistIn`, `add_in_kernel`). Where
-that kernel reads group rows from the lists of reached entries (a few entries a row), it
-counts them itself (`HistRows`, `counted_in_kernel`, `add_counted_in_kernel`) and XLA
-scatters nothing.
+that kernel reads rows from the lists of reached entries, it counts them itself and XLA
+scatters nothing: group rows (a few entries a row) in each row's program (`HistRows`,
+`count_in_kernel`), ungrouped rows (hundreds of entries a step past 16,384 envs) in
+programs of their own beside the rows' (`Pairs`, `count_pair_in_kernel`).
 
 The step's counts are scattered in place into `hist_steps`, which the add writes back as
 zeros: a scatter into a fresh zero array costs one more kernel per step, the fill.
 """
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -159,6 +161,64 @@ def count_in_kernel(bins: int, spec, blocks, values_of, total, words) -> None:
         add_counted_in_kernel(row, blocks(body, zero, values_of()), *words)
 
     jax.lax.cond((row >= 0) & (jnp.sum(total) > 0), count, lambda: None)
+
+
+class Pairs(NamedTuple):
+    """The (batch row, histogram row) pairs that programs of their own count (`of`), as the
+    fused kernel takes them: `table` (`[P, 4]` int32, P a power of two: the batch row, its
+    histogram row, the float32 bits of the row's `lo` and `hi`) and each histogram's
+    number of pairs (`sizes`), the pairs in histogram order."""
+
+    table: np.ndarray
+    sizes: tuple[int, ...]
+
+    @classmethod
+    def of(cls, hist_rows: tuple[HistRows, ...]) -> "Pairs":
+        """The pairs of `hist_rows` (one per histogram), each histogram's in batch row
+        order."""
+        table, sizes = [], []
+        for h in hist_rows:
+            mine = np.flatnonzero(h.row >= 0)
+            bits = [np.asarray(a, np.float32)[mine].view(np.int32) for a in (h.lo, h.hi)]
+            table += list(zip(mine, h.row[mine], *bits))
+            sizes.append(len(mine))
+        out = np.zeros((pl.next_power_of_2(max(len(table), 1)), 4), np.int32)
+        out[: len(table)] = np.array(table, np.int32).reshape(-1, 4)
+        return cls(out, tuple(sizes))
+
+
+def count_pair_in_kernel(
+    j, sizes: tuple[int, ...], bins: tuple[int, ...], table_ref, entries_of, hist_in, hist_out
+) -> None:
+    """Inside the fused kernel, the program of pair `j` (`Pairs`: `table_ref` its table,
+    `sizes` its pairs per histogram; `bins` each histogram's): the entries of the pair's
+    batch row, read from its list, counted into its row of the histogram.
+    `entries_of(src)` gives the length of source row `src`'s list, what reads a block of
+    it at an entry (`[1, n]` mask and values, in entry order) and the block's `n`;
+    `hist_in` and `hist_out` are the histograms' inputs and outputs (`HistIn`, three
+    each). Apart from the rows' programs, the count runs beside their folds, where in a
+    row's program it would run after it."""
+    src, row, lo, hi = (table_ref[pl.ds(j, 1), pl.ds(c, 1)] for c in range(4))
+    src, row = jnp.sum(src), jnp.sum(row)
+    lo, hi = (jax.lax.bitcast_convert_type(c, jnp.float32) for c in (lo, hi))
+    length, block, n = entries_of(src)
+
+    def count(i: int, nbins: int):
+        def step(k, acc):
+            mask, values = block(k * n)
+            return acc + counted_in_kernel(nbins, values, mask, lo, hi)
+
+        zero = jnp.zeros((pl.next_power_of_2(nbins + 2), 1), jnp.int32)
+        inc = jax.lax.fori_loop(0, (length + n - 1) // n, step, zero)
+        words = (*hist_in[3 * i + 1 : 3 * i + 3], *hist_out[3 * i + 1 : 3 * i + 3])
+        add_counted_in_kernel(row, inc, *words)
+
+    start = 0
+    for i, (size, nbins) in enumerate(zip(sizes, bins)):
+        if size:
+            mine = (j >= start) & (j < start + size) & (length > 0)
+            jax.lax.cond(mine, functools.partial(count, i, nbins), lambda: None)
+        start += size
 
 
 def counted_in_kernel(bins: int, values, mask, lo, hi) -> jax.Array:

@@ -11,7 +11,8 @@ once (in one or two blocks), a cumulative sum of its mask gives the ranks, the r
 and the weighted sum follow, and the ring slots are written in place (the rings are
 aliased to the outputs; other rows never touch a row's slots). The histograms' counts of
 the step, which XLA scatters, are added to their exact counts here too, where the add was
-a kernel of its own. With the full spec a step then takes 5 kernels, as many as the
+a kernel of its own; rows read from the lists (below) are counted here instead, and XLA
+scatters nothing. With the full spec a step then takes 5 kernels, as many as the
 hand-written floor's (docs/benchmarks.md has them and their times).
 
 A group row (`_stream.Selected`) is read from its metric's row of the batch and the group
@@ -49,7 +50,7 @@ from ._chunks import (
     counted_input,
     reads_counts,
 )
-from ._hists import HistIn, HistRows
+from ._hists import HistIn, HistRows, Pairs
 from ._program import program
 from ._selected import Selected
 from ._update import Batch
@@ -114,7 +115,9 @@ def fold(
     rows' newest arrivals written in, stamped with the row's `steps[r]` (uint32); and
     each histogram (`HistIn`) with its step's counts added and zeroed, or, with
     `hist_rows` (one per histogram; the rows read from the lists only), with its rows'
-    entries counted by the kernel, the step's counts left as they are (zero). With
+    entries counted by the kernel, the step's counts left as they are (zero): group rows'
+    by their own programs, ungrouped rows' by programs of their own after the rows', one
+    per (row, histogram row) pair (`_hists.Pairs`). With
     `update` (`_update.InKernel`), where each row is one program, the kernel also
     updates the state's per-row fields and the counted rows' counts, returned as
     `(fields, counts)` (else None; `counted`'s sums are then `Batch.counted_sums`).
@@ -141,7 +144,13 @@ def fold(
     table = [coeff.view(np.int32)[:, None], batch.table()]
     for r in rings:
         table += [np.stack([np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)], 1)]
-    for h in hist_rows:
+    # Ungrouped rows read from the lists have hundreds of entries a step: their histograms
+    # are counted by programs of their own, one per (row, histogram row) pair, beside the
+    # rows' folds, where in the rows' programs the count ran after the fold
+    # (docs/benchmarks.md, "Scaling"). Group rows have a few entries each.
+    pairs = Pairs.of(hist_rows) if hist_rows and not batch.grouped else None
+    programs = sum(pairs.sizes) if pairs else 0  # the pairs'
+    for h in () if pairs else hist_rows:
         bits = [np.asarray(a, np.float32).view(np.int32) for a in (h.lo, h.hi)]
         table += [np.stack([np.asarray(h.row, np.int32), *bits], 1)]
     table = np.concatenate(table, axis=1).astype(np.int32)
@@ -153,11 +162,15 @@ def fold(
     def col(a):
         return a.reshape(rows, 1)
 
+    def row_of(i):
+        # The pairs' programs, past the rows', take the last row's blocks and write none.
+        return jnp.minimum(i, rows - 1) if pairs else i
+
     def cols(n):
-        return pl.BlockSpec((1, n), lambda i, *c: (i, 0))
+        return pl.BlockSpec((1, n), lambda i, *c: (row_of(i), 0))
 
     def per_program(n):
-        return pl.BlockSpec((1, n), lambda i, *c: (i, *c) if c else (i, 0))
+        return pl.BlockSpec((1, n), lambda i, *c: (i, *c) if c else (row_of(i), 0))
 
     one = cols(1)
     args = [(a, whole(a)) for a in (batch.ok, batch.values, batch.bad)]
@@ -171,6 +184,8 @@ def fold(
     if gather:
         lists, chunk_sums = _reached.reached(batch, counted if packs else counted[:0], interpret)
         args += [(a, whole(a)) for a in lists]
+        if pairs:
+            args.append((jnp.asarray(pairs.table), whole(pairs.table)))
     elif reads_counts(rows, width, batch.grouped, ranked):
         args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
     if counted_here:
@@ -219,6 +234,7 @@ def fold(
         gather=gather,
         hists=len(hists),
         hist_bins=tuple(h.bins for h in hist_rows),
+        pairs=pairs.sizes if pairs else (),
         sources=not batch.grouped and batch.src == tuple(range(rows)),
         updates=(ema is not None, listed_sums) if own else None,
     )
@@ -228,7 +244,7 @@ def fold(
     floats, ints, *data = pl.pallas_call(
         kernel,
         out_shape=tuple(s for s, _ in outs),
-        grid=(rows,) if n_chunks == 1 else (rows, n_chunks),
+        grid=(rows + programs,) if n_chunks == 1 else (rows, n_chunks),
         in_specs=[s for _, s in args],
         out_specs=tuple(s for _, s in outs),
         input_output_aliases={

@@ -14,7 +14,7 @@ from jax.experimental.pallas import triton as plt
 
 from . import _reached, _update
 from ._chunks import blocking, chunking, masked_in_around, reads_counts
-from ._hists import add_in_kernel, count_in_kernel
+from ._hists import add_in_kernel, count_in_kernel, count_pair_in_kernel
 from ._update import Batch
 
 
@@ -50,6 +50,7 @@ def program(
     gather: int = 0,
     hists: int = 0,
     hist_bins: tuple[int, ...] = (),
+    pairs: tuple[int, ...] = (),
     sources: bool = False,
     updates: tuple[bool, int] | None = None,
 ):
@@ -86,7 +87,9 @@ def program(
     XLA's scatter counts them, and their add would be a kernel of its own. With
     `hist_bins` (only with `gather`) the program counts its own row's entries into its
     row of each histogram instead (`HistRows`), a few entries a step where XLA's scatter
-    reads every entry of the batch.
+    reads every entry of the batch. With `pairs` as well (each histogram's number of
+    `_hists.Pairs`; ungrouped rows only), the programs past the rows' count them instead,
+    a (row, histogram row) pair each, beside the rows' folds (`count_pair_in_kernel`).
 
     With `updates` (one program per row; `(ema, listed sums)`) the program also folds the
     batch's statistics into its row's fields of the state (`_update.row_updater`), where
@@ -97,6 +100,8 @@ def program(
         ids_ref, *refs = refs
     if gather:
         listed_ref, reached_ref, *refs = refs
+    if pairs:
+        pairs_ref, *refs = refs
     ranked = ema or bool(rings)
     chunk, n_chunks, _ = (
         (gather, 1, False) if gather else chunking(rows, batch, grouped, ranked=ranked)
@@ -124,6 +129,10 @@ def program(
     # Where each row is its own source row (`sources`), the row's reads take its source
     # from the program's id, not from the table in memory, which they would wait for.
     r = pl.program_id(0)
+    if pairs:
+        # The pairs' programs come after the rows' and read the last row's blocks
+        # (`fold`): what they read of it here goes unused.
+        r = jnp.minimum(r, rows - 1)
     src = r if sources else entry(Table.SRC)
     kind, group = entry(Table.KIND), entry(Table.GROUP)
 
@@ -399,13 +408,32 @@ def program(
             return xsum, xmin, xmax, p, s1, s2, wsum
 
         write(*jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty), total, nbad, csums)
-        for i, bins in enumerate(hist_bins):
+        for i, bins in enumerate(() if pairs else hist_bins):
             at = Table.hist(len(rings), i)
             words = (*hist_in[3 * i + 1 : 3 * i + 3], *hist_out[3 * i + 1 : 3 * i + 3])
             spec = tuple(table[:, j : j + 1] for j in range(at, at + 3))
             count_in_kernel(bins, spec, blocks, values_of, total, words)
 
-    fold_chunk()
+    def entries_of(src):
+        # A pair's source row read from its list (`count_pair_in_kernel`).
+        length, entries = _reached.list_reader(listed_ref, reached_ref, src, batch)
+
+        def block(start):
+            there, cols = entries(start, chunk)
+            rows = jnp.broadcast_to(src, cols.shape)
+            m = plt.load(m_ref.at[rows, cols], mask=there, other=False)
+            return m, plt.load(x_ref.at[rows, cols], mask=there, other=0.0)
+
+        return length, block, chunk
+
+    if pairs:
+        j = pl.program_id(0) - rows
+        count = functools.partial(
+            count_pair_in_kernel, j, pairs, hist_bins, pairs_ref, entries_of, hist_in, hist_out
+        )
+        jax.lax.cond(j < 0, fold_chunk, count)
+    else:
+        fold_chunk()
     if hists and not hist_bins:
         add = functools.partial(add_in_kernel, r, hist_in, hist_out)
         if n_chunks == 1:

@@ -861,13 +861,24 @@ def test_the_fused_kernel_updates_the_rows_fields_where_each_row_is_one_program(
     assert set(shapes) == ({(1, 1)} if in_kernel else {(1 + groups,)})
 
 
-@pytest.mark.parametrize(("num_envs", "groups"), [(300, 0), (4097, 0), (300, 2)])
-def test_fused_kernel_carries_histogram_counts_into_the_high_word(monkeypatch, num_envs, groups):
+@pytest.mark.parametrize(
+    ("num_envs", "groups", "listed"),
+    [(300, 0, False), (4097, 0, False), (300, 2, True)]
+    # Rows read from their lists without groups: their histograms counted by programs
+    # of their own, a (row, histogram row) pair each, as past 16,384 envs.
+    + [(300, 0, True), (4097, 0, True)],
+)
+def test_fused_kernel_carries_histogram_counts_into_the_high_word(
+    monkeypatch, num_envs, groups, listed
+):
     # A histogram's counts are two uint32 words: the kernel adds a step's counts to the
     # low words and carries into the high word where one wraps. From low words 2 below
     # 2^32, the counts after two steps against numpy's histogram of the finite values in
     # float64, as 64-bit integers; and the state as the jnp path leaves it.
     from jaxmetrics import _stream
+    from jaxmetrics._stream import _reached
+
+    monkeypatch.setattr(_reached, "listed", lambda *_: listed)
 
     edges = np.linspace(-1.0, 1.0, 6)
     # With an EMA, which the kernel folds (a histogram alone takes XLA's kernels).
