@@ -165,22 +165,22 @@ def count_in_kernel(bins: int, spec, blocks, values_of, total, words) -> None:
 
 class Pairs(NamedTuple):
     """The (batch row, histogram row) pairs that programs of their own count (`of`), as the
-    fused kernel takes them: `table` (`[P, 4]` int32, P a power of two: the batch row, its
-    histogram row, the float32 bits of the row's `lo` and `hi`) and each histogram's
-    number of pairs (`sizes`), the pairs in histogram order."""
+    fused kernel takes them: `table` (`[P, 4]` int32, P a power of two: the batch row's
+    source row, its histogram row, the float32 bits of the row's `lo` and `hi`) and each
+    histogram's number of pairs (`sizes`), the pairs in histogram order."""
 
     table: np.ndarray
     sizes: tuple[int, ...]
 
     @classmethod
-    def of(cls, hist_rows: tuple[HistRows, ...]) -> "Pairs":
+    def of(cls, hist_rows: tuple[HistRows, ...], src: tuple[int, ...]) -> "Pairs":
         """The pairs of `hist_rows` (one per histogram), each histogram's in batch row
-        order."""
+        order; `src`: each batch row's source row (`Selected`), whose list it reads."""
         table, sizes = [], []
         for h in hist_rows:
             mine = np.flatnonzero(h.row >= 0)
             bits = [np.asarray(a, np.float32)[mine].view(np.int32) for a in (h.lo, h.hi)]
-            table += list(zip(mine, h.row[mine], *bits))
+            table += list(zip(np.asarray(src)[mine], h.row[mine], *bits))
             sizes.append(len(mine))
         out = np.zeros((pl.next_power_of_2(max(len(table), 1)), 4), np.int32)
         out[: len(table)] = np.array(table, np.int32).reshape(-1, 4)

@@ -148,7 +148,7 @@ def fold(
     # are counted by programs of their own, one per (row, histogram row) pair, beside the
     # rows' folds, where in the rows' programs the count ran after the fold
     # (docs/benchmarks.md, "Scaling"). Group rows have a few entries each.
-    pairs = Pairs.of(hist_rows) if hist_rows and not batch.grouped else None
+    pairs = Pairs.of(hist_rows, batch.src) if hist_rows and not batch.grouped else None
     programs = sum(pairs.sizes) if pairs else 0  # the pairs'
     for h in () if pairs else hist_rows:
         bits = [np.asarray(a, np.float32).view(np.int32) for a in (h.lo, h.hi)]

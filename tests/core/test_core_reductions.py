@@ -861,6 +861,61 @@ def test_the_fused_kernel_updates_the_rows_fields_where_each_row_is_one_program(
     assert set(shapes) == ({(1, 1)} if in_kernel else {(1 + groups,)})
 
 
+@pytest.mark.parametrize(("batch", "density"), [(300, 0.3), (4097, 0.02), (4097, 1.0)])
+def test_fused_kernel_counts_listed_rows_into_histograms_by_programs_of_their_own(batch, density):
+    # Ungrouped rows read from the lists, each selecting a source row other than its own
+    # index (rows 0..2 select sources 2, 0 and 3 of four): the programs past the rows'
+    # count each (row, histogram row) pair's entries from its source row's list, two
+    # histograms of other bins and ranges (rows 0 and 2 in one, row 1 in the other).
+    # Entries that only a non-finite flag lists are not counted, NaN in no slot, the
+    # infinities under and over the range; against numpy's float64 histograms.
+    from jaxmetrics import _stream
+    from jaxmetrics._stream import _hists, _kernel
+    from jaxmetrics._stream._state import HistGroup
+
+    rng = np.random.default_rng(batch)
+    src = (2, 0, 3)
+    ok = rng.random((4, batch)) < density
+    x = rng.normal(size=(4, batch)).astype(np.float32)
+    x[:, :3] = np.nan, np.inf, -np.inf
+    flagged = rng.random((4, batch)) < 0.05
+    specs = ((5, (0, 2), (-1.0, -0.5), (1.0, 2.0)), (40, (1,), (-2.0,), (2.0,)))
+    hist_rows, hists = [], []
+    for bins, rows, lo, hi in specs:
+        row = np.full(3, -1, np.int32)
+        row[list(rows)] = np.arange(len(rows))
+        hist_rows.append(_hists.HistRows.of(HistGroup(bins, rows, lo, hi), row))
+        zero = np.zeros((len(rows), bins + 2), np.uint32)
+        hists.append((zero.astype(np.int32), zero, zero))
+
+    def fold(ok, x, bad, hists):
+        ids = jnp.zeros((0, batch), jnp.int32)
+        selected = _stream.Selected(x, ok, bad, ids, src, (-1,) * 3, (0,) * 3)
+        _, _, counted, _ = _kernel.fold(
+            selected,
+            jnp.zeros(3, jnp.float32),
+            jnp.zeros(3, jnp.uint32),
+            jnp.zeros((0, batch), jnp.int32),
+            0,
+            interpret=True,
+            listed=True,
+            hists=tuple(_hists.HistIn(*h) for h in hists),
+            hist_rows=tuple(hist_rows),
+        )
+        return counted
+
+    counted = jax.jit(fold)(ok, x, flagged.astype(np.uint8), hists)
+    for (bins, rows, lo, hi), h in zip(specs, counted):
+        np.testing.assert_array_equal(h.counted, 0)
+        np.testing.assert_array_equal(h.hi, 0)
+        for i, r in enumerate(rows):
+            v = x[src[r]][ok[src[r]]].astype(np.float64)
+            v = v[~np.isnan(v)]
+            inner = np.histogram(v, np.linspace(lo[i], hi[i], bins + 1))[0]
+            want = np.r_[np.sum(v < lo[i]), inner, np.sum(v > hi[i])]
+            np.testing.assert_array_equal(np.asarray(h.lo[i], np.int64), want, err_msg=str(r))
+
+
 @pytest.mark.parametrize(
     ("num_envs", "groups", "listed"),
     [(300, 0, False), (4097, 0, False), (300, 2, True)]
