@@ -12,7 +12,7 @@ and the weighted sum follow, and the ring slots are written in place (the rings 
 aliased to the outputs; other rows never touch a row's slots). The histograms' counts of
 the step, which XLA scatters, are added to their exact counts here too, where the add was
 a kernel of its own; rows read from the lists (below) are counted here instead, and XLA
-scatters nothing. With the full spec a step then takes 5 kernels, as many as the
+scatters nothing. With the full spec a step then takes 4 or 5 kernels, no more than the
 hand-written floor's (docs/benchmarks.md has them and their times).
 
 A group row (`_stream.Selected`) is read from its metric's row of the batch and the group
