@@ -419,10 +419,9 @@ def program(
         length, entries = _reached.list_reader(listed_ref, reached_ref, src, batch)
 
         def block(start):
-            there, cols = entries(start, chunk)
-            rows = jnp.broadcast_to(src, cols.shape)
-            m = plt.load(m_ref.at[rows, cols], mask=there, other=False)
-            return m, plt.load(x_ref.at[rows, cols], mask=there, other=0.0)
+            # Pairs are ungrouped rows: the reader reads any row, with no group match.
+            at, _ = reader(None, chunk, *entries(start, chunk))
+            return at(m_ref, src), at(x_ref, src)
 
         return length, block, chunk
 
