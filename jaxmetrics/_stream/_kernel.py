@@ -239,8 +239,10 @@ def fold(
         updates=(ema is not None, listed_sums) if own else None,
     )
     # A program of group rows mostly finds its chunk empty or nearly so: with fewer warps
-    # more such programs run at once (docs/benchmarks.md, "Per-group statistics").
-    warps = 4 if batch.grouped else 8
+    # more such programs run at once (docs/benchmarks.md, "Per-group statistics"). A row
+    # read from its list in blocks of up to 512 entries folds them faster with 4 warps
+    # too; in blocks of 1,024, with 8 (docs/benchmarks.md, "Scaling").
+    warps = 4 if batch.grouped or 0 < gather <= 512 else 8
     floats, ints, *data = pl.pallas_call(
         kernel,
         out_shape=tuple(s for s, _ in outs),

@@ -38,6 +38,20 @@ class Table:
         return Table.ring(rings) + 3 * i
 
 
+def _stacked(reduce, fill, *xs) -> list[jax.Array]:
+    """`reduce` of each of `xs` (`[1, n]`, one dtype) over its row (`[1, 1]` each), as one
+    reduction of their stack: Triton synchronizes a program's warps once per reduction,
+    however many rows it has."""
+    k, n = pl.next_power_of_2(len(xs)), xs[0].shape[1]
+    row = jax.lax.broadcasted_iota(jnp.int32, (k, n), 0)
+    stack = jnp.full((k, n), fill, xs[0].dtype)
+    for i, x in enumerate(xs):
+        stack = jnp.where(row == i, x, stack)
+    out = reduce(stack, axis=1, keepdims=True)
+    row = jax.lax.broadcasted_iota(jnp.int32, (k, 1), 0)
+    return [reduce(jnp.where(row == i, out, fill), axis=0, keepdims=True) for i in range(len(xs))]
+
+
 def program(
     *refs,
     ema: bool,
@@ -217,6 +231,7 @@ def program(
         ]
 
     row_sum = functools.partial(jnp.sum, axis=1, keepdims=True)
+
     chunk_id = pl.program_id(1) if n_chunks > 1 else 0
     izero = jnp.zeros((1, 1), jnp.int32)
     fzero = jnp.zeros((1, 1), jnp.float32)
@@ -330,22 +345,19 @@ def program(
         def counts(m, bad, *rest):
             *counted, acc = rest
             total, nbad, csums = acc
-            return (
-                total + row_sum(m.astype(jnp.int32)),
-                nbad + row_sum(bad),
-                tuple(s + row_sum(t) for s, t in zip(csums, counted)),
-            )
+            n, b, *sums = _stacked(jnp.sum, 0, m.astype(jnp.int32), bad, *counted)
+            return total + n, nbad + b, tuple(s + t for s, t in zip(csums, sums))
 
         def first(m, bad, *rest):
             *_, x, acc = rest
             xsum, xmin, xmax, dsum = acc
             zero = jnp.zeros_like(x)
-            return (
-                xsum + row_sum(jnp.where(m, x, zero)),
-                jnp.minimum(xmin, jnp.min(jnp.where(m, x, jnp.inf), axis=1, keepdims=True)),
-                jnp.maximum(xmax, jnp.max(jnp.where(m, x, -jnp.inf), axis=1, keepdims=True)),
-                dsum + row_sum(jnp.where(m, x - shift, zero)),
+            s, d = _stacked(jnp.sum, 0, jnp.where(m, x, zero), jnp.where(m, x - shift, zero))
+            # The min as the max of the negated values, in the max's reduction.
+            low, high = _stacked(
+                jnp.max, -jnp.inf, jnp.where(m, -x, -jnp.inf), jnp.where(m, x, -jnp.inf)
             )
+            return xsum + s, jnp.minimum(xmin, -low), jnp.maximum(xmax, high), dsum + d
 
         total, nbad, csums = blocks(counts, (izero, izero, (izero,) * packs))
         ahead = izero if later is None else later
@@ -380,7 +392,7 @@ def program(
                 # (1-c)^after; 0^0 = 1 for c = 1, as jnp.power gives.
                 decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(jnp.float32) * log_keep))
                 weight = jnp.where(seeding & (after == row_total - 1), decay, coeff * decay)
-                wsum = wsum + row_sum(weight * jnp.where(on, x - off, zero))
+                weighted = weight * jnp.where(on, x - off, zero)
             # Only the last `size` arrivals go in, to consecutive slots in arrival order.
             # The rings are aliased to their outputs: what this program does not write
             # stays. Entries left out are also pointed past the ring (Pallas' interpret
@@ -393,7 +405,8 @@ def program(
                 rows = jnp.broadcast_to(jnp.maximum(row, 0), x.shape)
                 plt.store(out.at[rows, slot, jnp.zeros_like(slot)], bits, mask=keep)
                 plt.store(out.at[rows, slot, jnp.ones_like(slot)], stamp, mask=keep)
-            return before + row_sum(m), s1 + row_sum(e), s2 + row_sum(e * e), wsum
+            de, sq, *w = _stacked(jnp.sum, 0, e, e * e, *([weighted] if ema else []))
+            return before + row_sum(m), s1 + de, s2 + sq, (wsum + w[0]) if ema else wsum
 
         def passes():
             # The moments take two passes: deviations from `shift`, then from their
