@@ -183,7 +183,7 @@ def fold(
         args.append((batch.ids, whole(batch.ids)))
     if gather:
         lists, chunk_sums = _reached.reached(batch, counted if packs else counted[:0], interpret)
-        args += [(a, whole(a)) for a in lists]
+        args += [(a, whole(a)) for a in lists if a is not None]
         if pairs:
             args.append((jnp.asarray(pairs.table), whole(pairs.table)))
     elif reads_counts(rows, width, batch.grouped, ranked):

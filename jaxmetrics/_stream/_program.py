@@ -78,9 +78,9 @@ def program(
     as it is read: the source's mask and, for a group row (`grouped`), its group index
     equal to the row's group; its non-finite flags count in the same group. With
     `gather` (one program per row, no counted row), at the entries of its source row's
-    list (`listed`, `[S, W]`, and `reached`, its chunks' counts: `_reached.list_reader`)
-    in blocks of `gather` entries, in entry order: ranks, EMA weights and ring slots come
-    out as from the batch.
+    list (`_reached.Reached`: `listed`, `[S, W]`, and `reached`, its chunks' counts, and
+    without group rows `flags`: `_reached.list_reader`) in blocks of `gather` entries, in
+    entry order: ranks, EMA weights and ring slots come out as from the batch.
 
     Triton's blocks are powers of two: a row (or chunk) that is not one is loaded as two
     blocks (`blocking`), the last ending at the row's end with the entries already covered
@@ -114,6 +114,9 @@ def program(
         ids_ref, *refs = refs
     if gather:
         listed_ref, reached_ref, *refs = refs
+        # Without group rows the lists hold the masked-in entries' values
+        # (`_reached.by_value`), and each chunk's flags summed.
+        flags_ref = None if grouped else refs.pop(0)
     if pairs:
         pairs_ref, *refs = refs
     ranked = ema or bool(rings)
@@ -313,9 +316,16 @@ def program(
         # block of `gather` entries at most steps, loaded once for every pass; else in
         # blocks of that size, loaded by each pass.
         length, entries = _reached.list_reader(listed_ref, reached_ref, src, batch)
+        flags = None if flags_ref is None else _reached.summed_in_kernel(flags_ref, src)
 
         def block(start, n: int):
-            return read(None, n, *entries(start, n))
+            if flags_ref is None:
+                return read(None, n, *entries(start, n))
+            # Every entry of the list is masked in; the flags are summed per chunk.
+            there, x = entries(start, n)
+            return [there, *(jnp.zeros(there.shape, jnp.int32) for _ in range(1 + packs))], (
+                lambda: x
+            )
 
         def one_block():
             marks, values = block(0, chunk)
@@ -324,7 +334,7 @@ def program(
             def blocks(body, init, xs=None, *extra):
                 return body(*marks, *([] if xs is None else [x]), *extra, init)
 
-            fold_blocks(blocks, lambda: True)
+            fold_blocks(blocks, lambda: True, flags)
 
         def blocks_of(size: int):
             def blocks(body, init, xs=None, *extra):
@@ -334,13 +344,14 @@ def program(
 
                 return jax.lax.fori_loop(0, (length + size - 1) // size, step, init)
 
-            fold_blocks(blocks, lambda: True)
+            fold_blocks(blocks, lambda: True, flags)
 
         jax.lax.cond(length <= chunk, one_block, lambda: blocks_of(chunk))
 
-    def fold_blocks(blocks, values_of):
+    def fold_blocks(blocks, values_of, flags=None):
         """The row's statistics folded over its blocks: `blocks(body, init, xs, *extra)`
-        folds `body` over them, with each block's values from `xs` (`values_of()`)."""
+        folds `body` over them, with each block's values from `xs` (`values_of()`);
+        `flags`: the row's non-finite flags, where its blocks have none."""
 
         def counts(m, bad, *rest):
             *counted, acc = rest
@@ -359,7 +370,9 @@ def program(
             )
             return xsum + s, jnp.minimum(xmin, -low), jnp.maximum(xmax, high), dsum + d
 
-        total, nbad, csums = blocks(counts, (izero, izero, (izero,) * packs))
+        total, nbad, csums = blocks(
+            counts, (izero, izero if flags is None else flags, (izero,) * packs)
+        )
         ahead = izero if later is None else later
         row_total = total if later is None else earlier + total + later
         k = jnp.maximum(total, 1).astype(jnp.float32)
@@ -432,9 +445,8 @@ def program(
         length, entries = _reached.list_reader(listed_ref, reached_ref, src, batch)
 
         def block(start):
-            # Pairs are ungrouped rows: the reader reads any row, with no group match.
-            at, _ = reader(None, chunk, *entries(start, chunk))
-            return at(m_ref, src), at(x_ref, src)
+            # Pairs are ungrouped rows: their lists hold the masked-in entries' values.
+            return entries(start, chunk)
 
         return length, block, chunk
 

@@ -44,13 +44,27 @@ reads them from the lists (`listed`)."""
 
 
 class Reached(NamedTuple):
-    """Per source row of a batch (`[S, W]` int32, W the batch rounded up to whole chunks):
-    the indices of its reached entries, chunk c's in order from entry `c * chunk` on, then
-    entries of no meaning; and its reached entries per chunk (`[S, n]` int32), whose sum
-    is the list's length."""
+    """Per source row of a batch (`[S, W]`, W the batch rounded up to whole chunks): its
+    listed entries, chunk c's in order from entry `c * chunk` on, then entries of no
+    meaning (`listed`); and its listed entries per chunk (`counts`, `[S, n]` int32), whose
+    sum is the list's length.
+
+    With group rows (`Selected.grouped`) the entries are the reached ones and `listed`
+    holds their indices (int32): a row reads their mask, flags and group index at them.
+    Without, the entries are the masked-in ones and `listed` holds their values (`by_value`),
+    and `flags` (`[S, n]` int32) each chunk's non-finite flags summed: a row, every entry
+    its own, reads its values from its list, where at the listed indices it would wait for
+    the list and then gather them (docs/benchmarks.md, "Scaling")."""
 
     listed: jax.Array
     counts: jax.Array
+    flags: jax.Array | None
+
+
+def by_value(batch: Selected) -> bool:
+    """Whether `batch`'s lists hold values, not indices (`Reached`): where it has no group
+    rows."""
+    return not batch.grouped
 
 
 def listed(rows: int, batch: int, ranked: bool) -> bool:
@@ -82,16 +96,21 @@ def chunk(batch: int) -> int:
     return min(size, 1 << (batch.bit_length() - 1))
 
 
-def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int):
-    """One chunk of a source row: each reached entry's index stored at its rank in the
-    chunk, in the chunk's segment of the row's list, and the chunk's reached entries
-    counted. Programs past the source rows sum a chunk of a counted row instead. The last
-    chunk of a row that chunks do not divide ends at the row's end, its entries of the
-    chunk before masked out."""
+def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int, values: bool):
+    """One chunk of a source row: each listed entry stored at its rank in the chunk, in
+    the chunk's segment of the row's list, and the chunk's listed entries counted: with
+    `values`, its masked-in entries' values, its flags summed; else its reached entries'
+    indices (`Reached`). Programs past the source rows sum a chunk of a counted row
+    instead. The last chunk of a row that chunks do not divide ends at the row's end, its
+    entries of the chunk before masked out."""
+    x_ref = None
+    if values:
+        x_ref, *refs = refs
     if counted:
-        counted_ref, listed_ref, counts_ref, sums_ref = refs
-    else:
-        listed_ref, counts_ref = refs
+        counted_ref, *refs = refs
+    listed_ref, counts_ref, *refs = refs
+    flags_ref = refs.pop(0) if values else None
+    sums_ref = refs[0] if counted else None
     row, c = pl.program_id(0), pl.program_id(1)
     sources = ok_ref.shape[0]
     lo = c * chunk
@@ -100,13 +119,24 @@ def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int):
 
     def listing():
         cols = (pl.ds(row, 1), pl.ds(start, chunk))
-        reached = ((ok_ref[cols] | (bad_ref[cols] != 0)) & (at >= lo)).astype(jnp.int32)
-        rank = jnp.cumsum(reached, axis=1) - 1
+        here = at >= lo
+        bad = jnp.where(here, bad_ref[cols].astype(jnp.int32), 0)
+        listed = ok_ref[cols] & here if values else (ok_ref[cols] | (bad != 0)) & here
+        rank = jnp.cumsum(listed.astype(jnp.int32), axis=1) - 1
         # Entries left out are pointed past the list (Pallas' interpret mode writes them
         # back).
-        slot = jnp.where(reached > 0, lo + rank, listed_ref.shape[1])
-        plt.store(listed_ref.at[jnp.broadcast_to(row, at.shape), slot], at, mask=reached > 0)
-        counts_ref[pl.ds(row, 1), pl.ds(c, 1)] = jnp.sum(reached, axis=1, keepdims=True)
+        slot = jnp.where(listed, lo + rank, listed_ref.shape[1])
+        if values:
+            # Only the listed entries' values are loaded: the whole chunk's cost the listing
+            # twice as much (docs/benchmarks.md, "Scaling").
+            entry = plt.load(x_ref.at[cols], mask=listed, other=0.0)
+            flags_ref[pl.ds(row, 1), pl.ds(c, 1)] = jnp.sum(bad, axis=1, keepdims=True)
+        else:
+            entry = at
+        plt.store(listed_ref.at[jnp.broadcast_to(row, at.shape), slot], entry, mask=listed)
+        counts_ref[pl.ds(row, 1), pl.ds(c, 1)] = jnp.sum(
+            listed.astype(jnp.int32), axis=1, keepdims=True
+        )
 
     def summing():
         r = pl.ds(row - sources, 1)
@@ -123,16 +153,17 @@ def list_reader(listed_ref, counts_ref, src, batch: int):
     """Inside the fused kernel: the length of source row `src`'s list (`Reached`, its
     `listed` and `counts` as `listed_ref` and `counts_ref`, of a batch of `batch` entries),
     and `entries(start, n)`: which of the list's entries `start` to `start + n - 1` it has
-    (`[1, n]` bool) and their indices in the batch (`[1, n]` int32, 0 where it has none),
-    in entry order. The list's k-th entry lies in the segment of the first chunk whose
-    counts up to it pass k, at k less the entries of the chunks before: `[chunks, n]`
-    compares (at most `SEGMENTS` chunks)."""
+    (`[1, n]` bool) and what the list holds of them (`[1, n]`: their indices in the batch
+    or their values, 0 where it has none), in entry order. The list's k-th entry lies in
+    the segment of the first chunk whose counts up to it pass k, at k less the entries of
+    the chunks before: `[chunks, n]` compares (at most `SEGMENTS` chunks)."""
     chunks = counts_ref.shape[1]
     c = jax.lax.broadcasted_iota(jnp.int32, (pl.next_power_of_2(chunks), 1), 0)
     counts = plt.load(counts_ref.at[jnp.broadcast_to(src, c.shape), c], mask=c < chunks, other=0)
     ends = jnp.cumsum(counts, axis=0)
     length = jnp.sum(counts)
     size = chunk(batch)
+    zero = jnp.zeros((), listed_ref.dtype)
 
     def entries(start, n: int) -> tuple[jax.Array, jax.Array]:
         k = jax.lax.broadcasted_iota(jnp.int32, (1, n), 1) + start
@@ -142,7 +173,7 @@ def list_reader(listed_ref, counts_ref, src, batch: int):
         rank = k - jnp.sum(jnp.where(before, counts, 0), axis=0, keepdims=True)
         at = jnp.where(there, seg * size + rank, 0)
         rows = jnp.broadcast_to(src, k.shape)
-        return there, plt.load(listed_ref.at[rows, at], mask=there, other=0)
+        return there, plt.load(listed_ref.at[rows, at], mask=there, other=zero)
 
     return length, entries
 
@@ -150,26 +181,29 @@ def list_reader(listed_ref, counts_ref, src, batch: int):
 def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Reached:
     """The lists of `batch`'s source rows (`Reached`), and the sums of `counted`'s rows
     (`[C, B]` integers: a counted row sums every entry, reached or not) per chunk (`[C,
-    n]`, added up by `summed`). One program per chunk lists and counts a chunk's reached
-    entries, or sums a counted row's."""
+    n]`, added up by `summed`). One program per chunk lists and counts a chunk's entries,
+    or sums a counted row's."""
     sources, width = batch.ok.shape
     size = chunk(width)
     n = -(-width // size)
+    values = by_value(batch)
 
     def whole(a):
         return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
 
-    ins = [batch.ok, batch.bad]
+    ins = [batch.ok, batch.bad, *([batch.values] if values else [])]
     rows = counted.shape[0]
     if rows:
         ins.append(counted_input(counted, sources))
+    per_chunk = jax.ShapeDtypeStruct((sources, n), jnp.int32)
     outs = [
-        jax.ShapeDtypeStruct((sources, n * size), jnp.int32),
-        jax.ShapeDtypeStruct((sources, n), jnp.int32),
+        jax.ShapeDtypeStruct((sources, n * size), batch.values.dtype if values else jnp.int32),
+        per_chunk,
+        *([per_chunk] if values else []),
     ]
     outs += [jax.ShapeDtypeStruct((rows, n), jnp.int32)] if rows else []
-    listed, counts, *sums = pl.pallas_call(
-        functools.partial(_list_kernel, batch=width, chunk=size, counted=rows),
+    listed, counts, *rest = pl.pallas_call(
+        functools.partial(_list_kernel, batch=width, chunk=size, counted=rows, values=values),
         out_shape=tuple(outs),
         grid=(sources + rows, n),
         in_specs=[whole(a) for a in ins],
@@ -177,12 +211,14 @@ def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Rea
         interpret=interpret,
         compiler_params=None if interpret else plt.CompilerParams(num_warps=4),
     )(*ins)
-    return Reached(listed, counts), sums[0] if rows else counts[:0]
+    flags = rest.pop(0) if values else None
+    return Reached(listed, counts, flags), rest[0] if rows else counts[:0]
 
 
 def summed_in_kernel(sums_ref, row) -> jax.Array:
     """Inside a kernel: counted row `row`'s sum (`[1, 1]`; 0 for `row` -1) from its chunks'
-    (`sums_ref`, `[C, n]`, `reached`'s), as `summed` adds them outside."""
+    (`sums_ref`, `[C, n]`, `reached`'s), as `summed` adds them outside; or so a source
+    row's flags (`Reached.flags`)."""
     n = sums_ref.shape[1]
     j = jax.lax.broadcasted_iota(jnp.int32, (1, pl.next_power_of_2(n)), 1)
     at = sums_ref.at[jnp.broadcast_to(jnp.maximum(row, 0), j.shape), j]

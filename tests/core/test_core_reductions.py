@@ -4,6 +4,7 @@ Values, `done` patterns and flush cadences are random (hypothesis); the report i
 after *every* step, under `jit` + `lax.scan`, with `reset_period` applied through `lax.cond`.
 """
 
+import dataclasses
 import functools
 import math
 
@@ -585,33 +586,46 @@ def test_fused_kernel_reads_long_rows_from_the_chunks_segments_of_their_lists(
     [(3, 300, 0.02), (2, 3000, 0.5), (1, 4097, 1.0), (2, 65, 0.0), (1, 2048, 0.02)]
     + [(1, 24577, 0.3)],  # chunks of 2,048 (`_reached.SEGMENTS`)
 )
-def test_reached_entries_are_listed_in_order_and_counted_rows_summed(sources, batch, density):
-    # The lists hold each source row's masked-in or flagged entries, each chunk's in
-    # entry order in its own segment (the last chunk at 300, 3,000 and 4,097 overlapping
-    # the one before), counted per chunk, and the listing's kernel sums every counted row
-    # whole: against numpy.
+@pytest.mark.parametrize("grouped", [False, True])
+def test_reached_entries_are_listed_in_order_and_counted_rows_summed(
+    sources, batch, density, grouped
+):
+    # The lists hold each source row's entries, each chunk's in entry order in its own
+    # segment (the last chunk at 300, 3,000 and 4,097 overlapping the one before), counted
+    # per chunk: with group rows the masked-in or flagged entries' indices, without them
+    # the masked-in entries' values, each chunk's flags summed beside them. The listing's
+    # kernel sums every counted row whole. Against numpy.
     from jaxmetrics import _stream
     from jaxmetrics._stream import _reached
 
     rng = np.random.default_rng(batch)
     ok = rng.random((sources, batch)) < density
-    bad = (rng.random((sources, batch)) < 0.01).astype(np.int32)
+    bad = np.where(rng.random((sources, batch)) < 0.2, rng.integers(1, 3, (sources, batch)), 0)
+    values = rng.standard_normal((sources, batch)).astype(np.float32)
     counted = rng.integers(0, 3, (5, batch)).astype(np.int32)
 
-    def lists(ok, bad, counted):
-        batch = _stream.Selected.every(jnp.zeros(ok.shape, jnp.float32), ok, bad)
+    def lists(values, ok, bad, counted):
+        batch = _stream.Selected.every(values, ok, bad.astype(jnp.uint8))
+        if grouped:
+            ids = jnp.zeros((1, values.shape[1]), jnp.int32)
+            rows = tuple(range(sources))
+            batch = dataclasses.replace(batch, ids=ids, kind=(0,) * sources, src=rows)
         return _reached.reached(batch, counted, interpret=True)
 
-    (listed, counts), sums = jax.jit(lists)(ok, bad, counted)
+    (listed, counts, flags), sums = jax.jit(lists)(values, ok, bad, counted)
+    assert (flags is None) == grouped
     size = _reached.chunk(batch)
     assert counts.shape == (sources, -(-batch // size))
     for r in range(sources):
-        reached = np.flatnonzero(ok[r] | (bad[r] != 0))
+        entries = np.flatnonzero(ok[r] | (bad[r] != 0) if grouped else ok[r])
         for c in range(counts.shape[1]):
-            want = reached[(reached >= c * size) & (reached < (c + 1) * size)]
+            mine = (np.arange(batch) >= c * size) & (np.arange(batch) < (c + 1) * size)
+            want = entries[mine[entries]]
             assert int(counts[r, c]) == len(want)
             segment = np.asarray(listed[r, c * size : c * size + len(want)])
-            np.testing.assert_array_equal(segment, want)
+            np.testing.assert_array_equal(segment, want if grouped else values[r, want])
+            if not grouped:
+                assert int(flags[r, c]) == int(bad[r, mine].sum())
     np.testing.assert_array_equal(_reached.summed(sums), counted.sum(axis=1))
 
 
