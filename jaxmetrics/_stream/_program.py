@@ -234,7 +234,6 @@ def program(
         ]
 
     row_sum = functools.partial(jnp.sum, axis=1, keepdims=True)
-
     chunk_id = pl.program_id(1) if n_chunks > 1 else 0
     izero = jnp.zeros((1, 1), jnp.int32)
     fzero = jnp.zeros((1, 1), jnp.float32)
@@ -321,11 +320,10 @@ def program(
         def block(start, n: int):
             if flags_ref is None:
                 return read(None, n, *entries(start, n))
-            # Every entry of the list is masked in; the flags are summed per chunk.
+            # Every entry of the list is masked in; the flags are summed per chunk (`flags`).
             there, x = entries(start, n)
-            return [there, *(jnp.zeros(there.shape, jnp.int32) for _ in range(1 + packs))], (
-                lambda: x
-            )
+            zeros = [jnp.zeros(there.shape, jnp.int32) for _ in range(1 + packs)]
+            return [there, *zeros], lambda: x
 
         def one_block():
             marks, values = block(0, chunk)

@@ -14,7 +14,8 @@ The chunks need no count of the entries before them: the listing is one kernel. 
 where every entry arrives lists them all, and the rows then read the whole batch. A
 batch with an EMA or a ring past `LONG` entries is read from the lists with or without
 group rows: its rows then need no chunks, no chunk counts and no combination of the
-chunks' statistics.
+chunks' statistics. Without group rows a list holds its masked-in entries' values, the
+flags summed beside it, and with them its reached entries' indices (`Reached`).
 """
 
 import functools
@@ -121,21 +122,21 @@ def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int, v
         cols = (pl.ds(row, 1), pl.ds(start, chunk))
         here = at >= lo
         bad = jnp.where(here, bad_ref[cols].astype(jnp.int32), 0)
-        listed = ok_ref[cols] & here if values else (ok_ref[cols] | (bad != 0)) & here
-        rank = jnp.cumsum(listed.astype(jnp.int32), axis=1) - 1
+        kept = ok_ref[cols] & here if values else (ok_ref[cols] | (bad != 0)) & here
+        rank = jnp.cumsum(kept.astype(jnp.int32), axis=1) - 1
         # Entries left out are pointed past the list (Pallas' interpret mode writes them
         # back).
-        slot = jnp.where(listed, lo + rank, listed_ref.shape[1])
+        slot = jnp.where(kept, lo + rank, listed_ref.shape[1])
         if values:
             # Only the listed entries' values are loaded: the whole chunk's cost the listing
             # twice as much (docs/benchmarks.md, "Scaling").
-            entry = plt.load(x_ref.at[cols], mask=listed, other=0.0)
+            entry = plt.load(x_ref.at[cols], mask=kept, other=0.0)
             flags_ref[pl.ds(row, 1), pl.ds(c, 1)] = jnp.sum(bad, axis=1, keepdims=True)
         else:
             entry = at
-        plt.store(listed_ref.at[jnp.broadcast_to(row, at.shape), slot], entry, mask=listed)
+        plt.store(listed_ref.at[jnp.broadcast_to(row, at.shape), slot], entry, mask=kept)
         counts_ref[pl.ds(row, 1), pl.ds(c, 1)] = jnp.sum(
-            listed.astype(jnp.int32), axis=1, keepdims=True
+            kept.astype(jnp.int32), axis=1, keepdims=True
         )
 
     def summing():
