@@ -461,13 +461,12 @@ def _fold_fused(
         # where XLA would scatter every entry of the batch (and for group rows first find
         # each entry's row: docs/benchmarks.md, "Per-group statistics" and "Scaling");
         # otherwise XLA scatters and the kernel adds the counts.
-        here = listed
         hist_rows = (
-            tuple(_hists.HistRows.of(g, where_of(g.rows)) for g in plan.hists) if here else ()
+            tuple(_hists.HistRows.of(g, where_of(g.rows)) for g in plan.hists) if listed else ()
         )
         hists = tuple(
             _hists.HistIn(
-                z if here else _hists.counted_selected(g, z, batch, plan.dtype), h.lo, h.hi
+                z if listed else _hists.counted_selected(g, z, batch, plan.dtype), h.lo, h.hi
             )
             for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
         )

@@ -440,13 +440,10 @@ def program(
 
     def entries_of(src):
         # A pair's source row read from its list (`count_pair_in_kernel`).
+        # Pairs are ungrouped rows: their lists hold masked-in entries' values only, so an
+        # entry the list has is masked in.
         length, entries = _reached.list_reader(listed_ref, reached_ref, src, batch)
-
-        def block(start):
-            # Pairs are ungrouped rows: their lists hold the masked-in entries' values.
-            return entries(start, chunk)
-
-        return length, block, chunk
+        return length, functools.partial(entries, n=chunk), chunk
 
     if pairs:
         j = pl.program_id(0) - rows

@@ -608,8 +608,7 @@ def test_reached_entries_are_listed_in_order_and_counted_rows_summed(
         batch = _stream.Selected.every(values, ok, bad.astype(jnp.uint8))
         if grouped:
             ids = jnp.zeros((1, values.shape[1]), jnp.int32)
-            rows = tuple(range(sources))
-            batch = dataclasses.replace(batch, ids=ids, kind=(0,) * sources, src=rows)
+            batch = dataclasses.replace(batch, ids=ids, kind=(0,) * sources)
         return _reached.reached(batch, counted, interpret=True)
 
     (listed, counts, flags), sums = jax.jit(lists)(values, ok, bad, counted)
