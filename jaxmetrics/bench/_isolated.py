@@ -7,9 +7,9 @@ import os
 import jax
 import jax.numpy as jnp
 
+from . import _profile
 from . import _workload as wl
 from ._hlo import loop_body_ops
-from ._profile import kernel_times
 from ._report import Table
 from ._timing import Variant, blocking, compile_jit, measure, tree_bytes
 
@@ -135,31 +135,43 @@ def isolated(
     if not profile:
         return [t]
     by_name = {v.name: v for v in variants}
-    return [t, _kernel_table(num_envs, steps, {k: (by_name[k], infos[k]) for k in PROFILED})]
+    profiled = {k: (by_name[k], infos[k], timings[k].median_s / steps * 1e6) for k in PROFILED}
+    return [t, _kernel_table(num_envs, steps, profiled)]
 
 
 PROFILED = ("floor", "simple", "full")
 
 
 def _kernel_table(num_envs: int, steps: int, profiled: dict, name: str = "kernels") -> Table:
+    """The kernels of each `profiled` variant (name -> its `Variant`, `_prepare`'s info
+    and its timed wall us/step) in one profiled call each, and how much of the step's
+    wall time no kernel ran."""
     t = Table(
         name,
         f"Device time per kernel and step: {num_envs} envs, {steps}-step scan (one profiled call)",
         ["variant", "kernel", "us/step", "launches/step", "shape", "fuses"],
     )
-    totals = {}
-    for name, (variant, info) in profiled.items():
-        kernels = kernel_times(variant.run, info["hlo"], steps)
-        totals[name] = sum(k.us_per_step for k in kernels)
-        for k in kernels:
+    totals, busy, wall = {}, {}, {}
+    for name, (variant, info, wall_us) in profiled.items():
+        p = _profile.profile(variant.run, info["hlo"], steps)
+        totals[name] = sum(k.us_per_step for k in p.kernels)
+        busy[name], wall[name] = p.busy_us_per_step, wall_us
+        for k in p.kernels:
             t.add(name, k.name, k.us_per_step, k.launches_per_step, k.shape, k.ops)
-    t.data = {"total_us_per_step": totals}
+    t.data = {"total_us_per_step": totals, "busy_us_per_step": busy, "wall_us_per_step": wall}
     t.notes.append(
         "Summed device events per name over one call, divided by the steps (on a GPU the "
         "kernels of its streams, on the CPU the thunks of XLA's client threads); `fuses` "
         "lists the opcodes inside a fusion, most frequent first. Totals per step: "
         + ", ".join(f"{k} {v:.1f} us" for k, v in totals.items())
         + "."
+    )
+    t.notes.append(
+        "Time per step in which some kernel ran (the union of their intervals), against the "
+        "timed wall time per step; the rest the device ran none (launches between kernels "
+        "and between steps): "
+        + ", ".join(f"{k} {busy[k]:.1f} of {wall[k]:.1f} us" for k in profiled)
+        + ". On a CPU the profiler slows the call past the timed one."
     )
     return t
 
@@ -351,7 +363,11 @@ def groups(
         return [t]
     by_name = {v.name: v for v in variants}
     profiled = {
-        f"{features}, {most} groups": (by_name[f"{features}_g{most}"], infos[f"{features}_g{most}"])
+        f"{features}, {most} groups": (
+            by_name[f"{features}_g{most}"],
+            infos[f"{features}_g{most}"],
+            tm[f"{features}_g{most}"].median_s / steps * 1e6,
+        )
         for features, _ in GROUP_SPECS
     }
     return [t, _kernel_table(num_envs, steps, profiled, "group_kernels")]

@@ -2,10 +2,12 @@
 
 Counting the ops left in the loop body (`_hlo`) says how many kernels run per step, not
 which of them cost: on an H100 one reverse cumsum took 6 us of a 28 us update while
-four counter adds took 1 us each. `kernel_times` runs a compiled call once under
+four counter adds took 1 us each. `profile` runs a compiled call once under
 `jax.profiler.trace`, sums the duration of every device event by name (on a GPU the
 kernels of its streams; on the CPU the thunks XLA's CPU client runs) and divides by the
 number of steps; each kernel is described by the ops it fuses, read from the compiled HLO.
+It also measures how long per step any kernel ran: a step's wall time less that is time
+the device spent launching, which the kernels' sum does not show.
 """
 
 import collections
@@ -77,11 +79,33 @@ def _device_lines(planes: list[Any]) -> list[Any]:
     return [ln for p in planes if p.name == "/host:CPU" for ln in p.lines if ln.name != "python"]
 
 
-def kernel_times(run: Callable[[], Any], hlo_text: str, steps: int) -> list[Kernel]:
-    """Profiles one `run()` (a whole, blocking call of a program scanning `steps` steps)
-    and returns its kernels, most expensive first."""
+@dataclasses.dataclass(frozen=True)
+class Profile:
+    """A profiled call's kernels (most expensive first) and, per step, the time at least
+    one of them ran (`busy_us_per_step`, the union of their intervals: kernels that
+    overlap count once). The step's wall time less `busy_us_per_step` is the time the
+    device ran no kernel: launch gaps between kernels and between the loop's steps."""
+
+    kernels: list[Kernel]
+    busy_us_per_step: float
+
+
+def _union_ns(intervals: list[tuple[int, int]]) -> int:
+    """Total length of the union of `(start, end)` intervals."""
+    total, end = 0, None
+    for a, b in sorted(intervals):
+        if end is None or a > end:
+            total, end = total + b - a, b
+        elif b > end:
+            total, end = total + b - end, b
+    return total
+
+
+def profile(run: Callable[[], Any], hlo_text: str, steps: int) -> Profile:
+    """Profiles one `run()` (a whole, blocking call of a program scanning `steps` steps)."""
     total: collections.Counter[str] = collections.Counter()
     launches: collections.Counter[str] = collections.Counter()
+    intervals: list[tuple[str, int, int]] = []
     with tempfile.TemporaryDirectory() as d:
         with jax.profiler.trace(d):
             run()
@@ -94,6 +118,7 @@ def kernel_times(run: Callable[[], Any], hlo_text: str, steps: int) -> list[Kern
                     continue
                 total[e.name] += e.duration_ns
                 launches[e.name] += 1
+                intervals.append((e.name, e.start_ns, e.start_ns + e.duration_ns))
     known = describe(hlo_text)
     kernels = []
     for name, ns in total.most_common():
@@ -101,4 +126,6 @@ def kernel_times(run: Callable[[], Any], hlo_text: str, steps: int) -> list[Kern
         if ops in _CONTAINERS:  # a loop's own event spans the kernels it runs
             continue
         kernels.append(Kernel(name, ns / 1e3 / steps, launches[name] / steps, shape, ops))
-    return kernels
+    ran = {k.name for k in kernels}
+    busy = _union_ns([(a, b) for name, a, b in intervals if name in ran])
+    return Profile(kernels, busy / 1e3 / steps)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from jaxmetrics import bench
-from jaxmetrics.bench import _brax_results, _isolated, _render
+from jaxmetrics.bench import _brax_results, _isolated, _profile, _render
 
 NUM_ENVS, STEPS = 64, 50
 ROLLOUT_STEPS = 30
@@ -287,6 +287,20 @@ def test_kernel_profile_names_the_ops_of_each_variant(result):
     assert count["full"] > count["floor"]
     totals = k["data"]["total_us_per_step"]
     assert totals["full"] > totals["floor"] > 0
+    # Some kernel ran for part of each step: at most the kernels' sum (overlaps count once).
+    busy = k["data"]["busy_us_per_step"]
+    assert all(0 < busy[v] <= totals[v] * (1 + 1e-9) for v in totals), (busy, totals)
+    assert set(k["data"]["wall_us_per_step"]) == set(totals)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_profile_busy_time_counts_overlapping_kernels_once(seed):
+    rng = np.random.default_rng(seed)
+    starts = rng.integers(0, 60, size=rng.integers(0, 9))
+    intervals = [(int(a), int(a + rng.integers(0, 25))) for a in starts]
+    # Reference: the nanoseconds covered by some interval, one by one.
+    covered = {t for a, b in intervals for t in range(a, b)}
+    assert _profile._union_ns(intervals) == len(covered)
 
 
 @pytest.mark.slow
