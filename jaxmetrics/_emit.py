@@ -1,12 +1,13 @@
-"""In-graph emit: an ordered `io_callback` under `lax.cond`, fired at period ends only.
+"""In-graph emit: a report sent to the host under `lax.cond`, at period ends only.
 
-JAX can neither `vmap` an ordered `io_callback` nor a `cond` whose branches have IO
-effects. So the emit is a `custom_vmap` function: unbatched, it is `cond(when, write,
-identity)`; under `vmap` its rule moves the batch axis to the front and calls the same
-construction one level up, which computes every batch element's report with an inner
-`vmap` (effect-free) and makes *one* ordered callback carrying all of them, together
-with each element's run index, step and `when`. The host splits them. Nested `vmap`s
-stack further leading axes the same way.
+The report leaves through the Logger's report channel (`_channel`: a ring in host memory
+written by the device, or an ordered `io_callback`). JAX can vmap neither the callback
+nor a `cond` whose branches have its effects. So the emit is a `custom_vmap` function:
+unbatched, it is `cond(when, write, identity)`; under `vmap` its rule moves the batch
+axis to the front and calls the same construction one level up, which computes every
+batch element's report with an inner `vmap` (effect-free) and sends *one* report
+carrying all of them, together with each element's run index, step and `when`. The host
+splits them. Nested `vmap`s stack further leading axes the same way.
 
 A wrapper that reports by itself has no run index to pass: built with `runs_by_position`,
 the batch element at position `i` of a (single) vmapped axis is run `i`.
@@ -18,7 +19,6 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from jax import custom_batching
-from jax.experimental import io_callback
 
 _NEEDS_RUN = (
     "emit under vmap sends each batch element to its own run, so `run` must be batched "
@@ -38,8 +38,8 @@ class InGraphEmit:
     Args:
       compute: state -> report (in-graph).
       reset: state -> state at the start of a new period.
-      callback: host function `(report, step, when, run) -> None`; every argument has
-        the same leading batch axes (none when not vmapped).
+      send: in-graph, sends `(report, step, when, run)` to the host (`Channel.send`);
+        every argument has the same leading batch axes (none when not vmapped).
       runs_by_position: the logger's number of runs, for an emit whose `run` is not
         batched: under one `vmap` of that size, element `i` is run `i`. None: `run` must be
         batched alongside the state.
@@ -49,10 +49,10 @@ class InGraphEmit:
         self,
         compute: Callable[[Any], Any],
         reset: Callable[[Any], Any],
-        callback: Callable[..., None],
+        send: Callable[..., None],
         runs_by_position: int | None = None,
     ):
-        self._compute, self._reset, self._callback = compute, reset, callback
+        self._compute, self._reset, self._send = compute, reset, send
         self._runs_by_position = runs_by_position
         self._levels: dict[int, Callable[..., Any]] = {}
 
@@ -65,20 +65,22 @@ class InGraphEmit:
         return self._levels[nd]
 
     def _build(self, nd: int) -> Callable[..., Any]:
-        compute, reset, callback = self._compute, self._reset, self._callback
+        compute, reset, send = self._compute, self._reset, self._send
         for _ in range(nd):
             compute, reset = jax.vmap(compute), jax.vmap(reset)
 
         @custom_batching.custom_vmap
         def emit(state, step, when, run):
-            def fire(state):
-                io_callback(callback, None, compute(state), step, when, run, ordered=True)
-                new = reset(state)
-                if nd == 0:
-                    return new
-                return jax.tree.map(lambda n, o: jnp.where(_expand(when, n.ndim), n, o), new, state)
+            def fire() -> None:
+                send(compute(state), step, when, run)
 
-            return jax.lax.cond(jnp.any(when), fire, lambda s: s, state)
+            # Only the report goes through the conditional, which has no outputs: a branch
+            # that passed the state through would copy every array of it on every step
+            # (in a CUDA graph, a copy node each). The reset is a select, fused with the
+            # step's other elementwise work.
+            jax.lax.cond(jnp.any(when), fire, lambda: None)
+            new = reset(state)
+            return jax.tree.map(lambda n, o: jnp.where(_expand(when, n.ndim), n, o), new, state)
 
         @emit.def_vmap
         def rule(axis_size, in_batched, state, step, when, run):

@@ -108,6 +108,16 @@ class EmitReceiver:
         self.calls = 0
 
     def __call__(self, packed: tuple[Any, Any], step: Any, when: Any, run: Any) -> None:
+        """The `io_callback`'s host function: the device waits until it returns."""
+        self._receive(packed, step, when, run, grace=True)
+
+    def receive(self, packed: tuple[Any, Any], step: Any, when: Any, run: Any) -> None:
+        """The report ring's delivery (on the channel's thread: the device does not wait)."""
+        self._receive(packed, step, when, run, grace=False)
+
+    def _receive(
+        self, packed: tuple[Any, Any], step: Any, when: Any, run: Any, grace: bool
+    ) -> None:
         wall_time = time.time()
         from_wrapper = isinstance(step, Count)
         if from_wrapper:  # env steps, exact
@@ -133,7 +143,7 @@ class EmitReceiver:
                 if from_wrapper:
                     s, host = self._continuation(r, s, host)
                 self._reports.check_later(s, (r,), counts[i])
-                if not queued:
+                if grace and not queued:
                     # The device waits for this callback, and JAX still runs Python after
                     # it returns; a writer thread woken now would hold the GIL through a
                     # record's Python and keep the device idle meanwhile. It first

@@ -23,6 +23,25 @@ class NonFiniteError(FloatingPointError):
     """Raised on the caller's thread for metrics whose nonfinite policy is "raise"."""
 
 
+class ReportsLostError(RuntimeError):
+    """In-graph reports were lost: the host fell more than the report ring's slots behind
+    the device, which overwrote reports the host had not taken.
+
+    Attributes:
+      lost: the number of reports lost since the last check.
+    """
+
+    def __init__(self, lost: int, slots: int):
+        self.lost = lost
+        super().__init__(
+            f"{lost} in-graph report(s) were lost: the device wrote them over before the "
+            f"host took them from the report ring of {slots} slots (the writers were "
+            "slower than the reports came). Report less often (a longer report_every, or "
+            "fewer period ends), or give the ring more slots: Logger(..., "
+            f"report_slots={2 * slots})."
+        )
+
+
 class WriterError(RuntimeError):
     """Every writer failure since the last check, raised together on the caller's thread.
 

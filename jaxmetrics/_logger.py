@@ -19,13 +19,14 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from . import _close_at_exit, _history, _tags
+from . import _channel, _close_at_exit, _history, _tags
 from ._call_checks import check_settings, check_state, check_step, is_traced, scalar_args
 from ._count import Count
 from ._emit import InGraphEmit
 from ._emitted import EmitReceiver
 from ._errors import CallerReports
 from ._errors import NonFiniteError as NonFiniteError
+from ._errors import ReportsLostError as ReportsLostError
 from ._errors import WriterError as WriterError
 from ._errors import WriterTimeoutError as WriterTimeoutError
 from ._history import History
@@ -53,9 +54,12 @@ class Logger(AbstractContextManager):
     drains everything in order and closes the writers; `wait()` drains without closing.
 
     Fully-jitted mode (PureJaxRL style): `state = logger.emit(state, step, when, run=i)`
-    inside the jitted function writes the same records through an ordered `io_callback`
-    under `lax.cond`, only where `when` is true (the period ends), and works under `vmap`
-    over seeds, each seed to its own run. Without a callback: `state, history =
+    inside the jitted function writes the same records, sent to the host under `lax.cond`
+    only where `when` is true (the period ends), and works under `vmap` over seeds, each
+    seed to its own run. On a CUDA GPU the report is written by the device into a ring
+    in host memory that a thread of the logger reads (no host round trip on the steps
+    that report nothing); elsewhere it goes through an ordered `io_callback`
+    (`report_channel`). Without a callback: `state, history =
     logger.record(state, history, step, when)` keeps the packed reports in an in-graph
     buffer (`history_init(capacity)`) returned with the jitted call's result, and
     `logger.write_history(history)` writes them afterwards (plain JAX: persistent
@@ -104,8 +108,10 @@ class Logger(AbstractContextManager):
       tags: the static tag table handed to the writers (the spec's tags plus the
         logger's: per_sec, histogram under/overflow, running); timer tags come on top.
       report_nbytes: bytes of the report the last `flush` copied device -> host.
-      emit_calls: host callbacks received from `emit` (one per period end, whatever the
+      emit_calls: reports received from `emit` (one per period end, whatever the
         number of vmapped seeds in it).
+      report_channel: the channel in-graph reports take (`kind` "ring" or "io_callback")
+        and why (`reason`); decided when an emit is first traced.
       summary_tags: the tag table of the seeds summary run (empty without one).
 
     Args:
@@ -132,6 +138,13 @@ class Logger(AbstractContextManager):
         histograms, window contents, `/nonfinite` and under/overflow counts and timers
         are not. A step's summary is written once every seed has written that step or
         a later one (and at `wait`/`close`/`write_history` for the rest).
+      report_channel: how `emit` and the reporting wrappers send reports to the host:
+        "auto" (the default) takes the ring on CUDA GPUs where it is tested and the
+        ordered `io_callback` elsewhere; "ring" (CUDA GPUs and the CPU) or
+        "io_callback" force one. Both give the same records.
+      report_slots: the ring's slots: how many reports the host may fall behind the
+        device before one is lost (the loss is counted, and `flush`, `wait` and `close`
+        raise `ReportsLostError` naming it).
 
     Examples:
       >>> import jax.numpy as jnp, jaxmetrics as jm
@@ -161,10 +174,13 @@ class Logger(AbstractContextManager):
         max_pending: int = 8,
         timeout: float | None = 120.0,
         seeds_summary: Sequence[Writer] | None = None,
+        report_channel: str = "auto",
+        report_slots: int = _channel.DEFAULT_SLOTS,
     ):
         if not isinstance(metrics, Metrics):
             raise TypeError(f"Logger: metrics must be a jaxmetrics.Metrics, got {metrics!r}.")
         check_settings(runs, max_pending, timeout, timer_prefix)
+        _channel.check_settings(report_channel, report_slots)
         self.metrics = metrics
         self.runs = int(runs)
         self.include_running = bool(include_running)
@@ -191,10 +207,18 @@ class Logger(AbstractContextManager):
         self._emitted = EmitReceiver(
             self.runs, packer, metrics.tags, self._runs.write_run, self._thread, self._reports
         )
-        self._emit = InGraphEmit(compute, metrics.reset_period, self._on_emit)
+        self._channel = _channel.Channel(
+            self._emitted,
+            self._emitted.receive,
+            report_channel,
+            report_slots,
+            on_error=self._reports.error,
+        )
+        send = self._channel.send
+        self._emit = InGraphEmit(compute, metrics.reset_period, send)
         # The reporting wrappers' emit: no run argument, seeds by their vmapped position.
         self._wrapper_emit = InGraphEmit(
-            compute, metrics.reset_period, self._on_emit, runs_by_position=self.runs
+            compute, metrics.reset_period, send, runs_by_position=self.runs
         )
         self._history_id = _history.layout_id(metrics.config_id, self.include_running)
         self._timer_prefix = timer_prefix
@@ -209,9 +233,21 @@ class Logger(AbstractContextManager):
 
     @property
     def emit_calls(self) -> int:
-        """Host callbacks received from `emit` (one per period end, whatever the number of
+        """Reports received from `emit` (one per period end, whatever the number of
         vmapped seeds in it)."""
         return self._emitted.calls
+
+    @property
+    def report_channel(self) -> _channel.Choice:
+        """The channel in-graph reports take, and why (see the class docstring)."""
+        return self._channel.choice
+
+    def _surface(self) -> None:
+        """Raises on the caller's thread what the writer thread and the channel kept."""
+        self._reports.surface()
+        lost = self._channel.take_lost()
+        if lost:
+            raise ReportsLostError(lost, self._channel.slots)
 
     # ------------------------------------------------------------------ host loop
 
@@ -246,7 +282,7 @@ class Logger(AbstractContextManager):
         check_state(state, self.runs)
         check_step(step, self.runs, self._last_step)
         # What earlier flushes left to report is raised before this one acts.
-        self._reports.surface()
+        self._surface()
         with self._thread.reserved("flush") as put:
             words, finished, logged = self._programs.report_and_reset(state)
             words.copy_to_host_async()
@@ -309,8 +345,9 @@ class Logger(AbstractContextManager):
         """
         self._thread.check_open("wait")
         jax.effects_barrier()
+        self._channel.drain()
         self._thread.drain("wait", self._runs.drain_summary)
-        self._reports.surface()
+        self._surface()
 
     def close(self) -> None:
         """Drains everything in order, closes the writers and stops the writer thread.
@@ -320,11 +357,12 @@ class Logger(AbstractContextManager):
         if self._thread.closed:
             return
         jax.effects_barrier()  # emits still in flight land before the door closes
+        self._channel.close()
         if not self._thread.stop(self._runs.drain_summary, self._runs.close_writers):
             return
         _close_at_exit.forget(self)
         self._thread.wait_stopped("close")
-        self._reports.surface()
+        self._surface()
 
     def __exit__(self, *exc: object) -> None:
         self.close()
@@ -333,7 +371,7 @@ class Logger(AbstractContextManager):
 
     def emit(self, state: MetricsState, step: Any, when: Any, *, run: Any = None) -> MetricsState:
         """In-graph flush for training loops inside one `jit`: where `when` is true, the
-        report goes to the writers (ordered `io_callback`) and the period resets.
+        report goes to the writers (through `report_channel`) and the period resets.
 
         Pure and jittable; a no-op (no callback, no host traffic) where `when` is false.
         Under `vmap` over seeds, pass each seed's run index as `run` (vmapped alongside,
@@ -373,16 +411,12 @@ class Logger(AbstractContextManager):
         step, run, when = scalar_args("Logger.emit", step=step, run=run, when=when)
         return self._emit(state, step, when, run)
 
-    def _emit_from_wrapper(self, state: MetricsState, step: Count, when: jax.Array) -> MetricsState:
-        """`emit` for a reporting wrapper (`_reporting.Reporter`): the step is an exact
-        `Count` (env steps pass 2^31 in long runs), and under `vmap` each seed's position
-        on the vmapped axis is its run."""
+    def emit_from_wrapper(self, state: MetricsState, step: Count, when: jax.Array) -> MetricsState:
+        """The reporting wrappers' in-graph emit (`_reporting.ReportSink`), not for user
+        code: the step is an exact `Count` (env steps pass 2^31 in long runs), and under
+        `vmap` each seed's position on the vmapped axis is its run."""
         self._thread.check_open("emit")
         return self._wrapper_emit(state, step, when, jnp.zeros((), jnp.int32))
-
-    def _on_emit(self, packed: tuple[Any, Any], step: Any, when: Any, run: Any) -> None:
-        """The host callback of the in-graph emits (`_emitted.EmitReceiver`)."""
-        self._emitted(packed, step, when, run)
 
     # ------------------------------------------------------------------ report history
 

@@ -15,7 +15,7 @@ the order of the global env index; one device writes it.
 """
 
 import math
-from typing import Any
+from typing import Any, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -26,6 +26,14 @@ from ._logger import Logger
 from ._metrics import Metrics
 from ._state import MetricsState
 from ._validate import is_int
+
+class ReportSink(Protocol):
+    """What a reporting wrapper hands its reports to (a `jaxmetrics.Logger`)."""
+
+    def emit_from_wrapper(self, state: MetricsState, step: Count, when: jax.Array) -> MetricsState:
+        """In-graph: reports `state` at `step` where `when`, and resets the period there."""
+        ...
+
 
 DEFAULT_PERIOD_CALLS = 100
 """Without `report_every`, a wrapper reports every 100 steps of its env batch."""
@@ -84,7 +92,8 @@ class Reporter:
             )
         if axis_name is not None and not isinstance(axis_name, str):
             raise TypeError(f"{where}(axis_name=...) must be a str or None, got {axis_name!r}.")
-        self.metrics, self.logger = metrics, logger
+        self.metrics = metrics
+        self.logger: ReportSink = logger
         self.report_every = None if report_every is None else int(report_every)
         self.axis_name = axis_name
         self._env_steps = metrics._rows.shard_counters.index("env_steps")
@@ -112,21 +121,24 @@ class Reporter:
         clock = jnp.asarray(clock, jnp.int32) + 1
         when = clock >= self.period_calls(num_envs, steps_per_call)
         clock = jnp.where(when, jnp.zeros_like(clock), clock)
-        if axis_size(self.axis_name) is None:
-            return self.logger._emit_from_wrapper(state, self._step(state), when), clock
+        if (axis_size(self.axis_name) or 1) == 1:
+            # One device (Brax's trainers pmap over one): nothing to gather, and no
+            # collective in the period-end branch.
+            return self.logger.emit_from_wrapper(state, self._step(state), when), clock
         name = self.axis_name
 
-        def report(state: MetricsState) -> MetricsState:
+        def report() -> None:
             merged = self._gathered(state, name)
 
-            def write(merged: MetricsState) -> MetricsState:
-                return self.logger._emit_from_wrapper(merged, self._step(merged), when)
+            def write() -> None:
+                self.logger.emit_from_wrapper(merged, self._step(merged), when)
 
-            first = jax.lax.axis_index(name) == 0
-            jax.lax.cond(first, write, lambda s: s, merged)
-            return self.metrics.reset_period(state)
+            jax.lax.cond(jax.lax.axis_index(name) == 0, write, lambda: None)
 
-        return jax.lax.cond(when, report, lambda s: s, state), clock
+        # As in the emit: the conditionals have no outputs (no copy of the state a step).
+        jax.lax.cond(when, report, lambda: None)
+        new = self.metrics.reset_period(state)
+        return jax.tree.map(lambda n, o: jnp.where(when, n, o), new, state), clock
 
     def _step(self, state: MetricsState) -> Count:
         """The report's step: env steps over every env of the state."""

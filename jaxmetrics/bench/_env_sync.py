@@ -169,7 +169,7 @@ def _ablation(reporter: Any, kind: str) -> Any:
             if kind == "cond_pure":
                 state = jax.lax.cond(when, self.metrics.reset_period, lambda s: s, state)
             elif kind == "cond_callback":
-                state = self.logger._emit_from_wrapper(state, self._step(state), when)
+                state = self.logger.emit_from_wrapper(state, self._step(state), when)
             elif kind == "where":
                 new = self.metrics.reset_period(state)
                 state = jax.tree.map(lambda n, o: jnp.where(when, n, o), new, state)

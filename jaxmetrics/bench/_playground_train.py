@@ -72,7 +72,7 @@ from ._brax_train import (
 from ._brax_train import environment as brax_environment
 
 ENV = "CartpoleBalance"
-WRAPS = ("jaxmetrics", "fold", "playground")
+WRAPS = ("jaxmetrics", "jaxmetrics_io", "fold", "playground")
 IMPLS = ("warp", "jax")
 STATS = ("mean", "std", "min", "max", "count", jm.window(100))
 REPORTS_PER_EPOCH = 5
@@ -234,14 +234,18 @@ def run_one(spec: str, args: argparse.Namespace, counter: CompileCounter) -> dic
     progress: list[dict[str, Any]] = []
     logger = writer = logdir = None
     t0 = time.time()
-    if wrap == "jaxmetrics":
+    if wrap in ("jaxmetrics", "jaxmetrics_io"):
         terms = build_terms(env)
         metrics = jm.Metrics(terms=terms)
         result["terms"] = list(terms)
         result["settings"]["report_every"] = report_every
         logdir = tempfile.mkdtemp(prefix=f"playground_{impl}_")
         writer = ArrivalWriter(t0)
-        logger = jm.Logger(metrics, [jm.TensorBoardWriter(logdir), writer])
+        channel = "io_callback" if wrap == "jaxmetrics_io" else "auto"
+        logger = jm.Logger(
+            metrics, [jm.TensorBoardWriter(logdir), writer], report_channel=channel
+        )
+        result["report_channel"] = logger.report_channel._asdict()
         extra["wrap_env_fn"] = functools.partial(
             jmp.wrap, metrics=metrics, logger=logger, report_every=report_every
         )

@@ -1,0 +1,375 @@
+"""The report channel: how a report made inside a jitted program reaches the host.
+
+Two channels carry the same payload (a pytree of small arrays) to the same host function:
+
+- `"ring"`: the payload is written into a ring of slots in host memory by the device
+  itself (on a CUDA GPU, a kernel writing through a device-mapped pointer into pinned
+  memory, `_cuda`; on the CPU, a host function writing the same words), and a host thread
+  takes whole reports from it (`_ring`) and hands them on in order. On a GPU nothing in
+  the program waits for the host: XLA records the kernel into its CUDA graph, inside the
+  conditional of a period end, so a step that reports nothing costs no host round trip.
+- `"io_callback"`: an ordered `io_callback`, portable. On a GPU, XLA cannot record a host
+  callback into a CUDA graph, so a `lax.cond` whose branch holds one is run from the host:
+  the predicate is copied back and the GPU waited for on every evaluation, reported or not.
+
+`"auto"` takes the ring where it is tested (CUDA GPUs, the JAX versions in
+`TESTED_JAX`, a driver of CUDA `MIN_CUDA_DRIVER` or later, command buffers not turned off)
+and the `io_callback` elsewhere; `Choice.reason` says why.
+
+The ring loses a report only when the host falls more than `slots` reports behind the
+device; the reports after it say so (their `seq` skips), and `take_lost` counts them.
+"""
+
+import logging
+import os
+import threading
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import io_callback
+
+from . import _ring
+
+TESTED_JAX = ((0, 10), (0, 11))
+"""JAX minor versions the ring channel is tested on (0.10.2 on the CPU, 0.11.2 on H100s)."""
+MIN_CUDA_DRIVER = 12030
+"""CUDA 12.3: the first with conditional nodes in CUDA graphs, which XLA's `lax.cond`
+needs to stay inside a graph."""
+CHANNELS = ("auto", "ring", "io_callback")
+DEFAULT_SLOTS = 64
+
+_log = logging.getLogger("jaxmetrics")
+
+
+class Choice(NamedTuple):
+    """The channel a Logger's in-graph reports take, and why."""
+
+    kind: str  # "ring" or "io_callback"
+    reason: str
+
+
+def _private_jax() -> Any:
+    """The JAX internals the ring's primitive is built from (see `_send_primitive`)."""
+    from jax._src import buffer_callback, callback, core, dispatch, ffi
+    from jax._src.interpreters import mlir
+
+    return buffer_callback, callback, core, dispatch, ffi, mlir
+
+
+def choose(requested: str) -> Choice:
+    """The channel for `requested` ("auto", "ring" or "io_callback") on this process's
+    default backend."""
+    if requested == "io_callback":
+        return Choice("io_callback", "report_channel='io_callback' was asked for")
+    version = tuple(int(p) for p in jax.__version__.split(".")[:2])
+    backend = jax.default_backend()
+    if requested == "ring":
+        if backend not in ("cpu", "gpu") or (backend == "gpu" and _gpu_platform() != "cuda"):
+            raise ValueError(
+                f"report_channel='ring' runs on CUDA GPUs and on the CPU, not on "
+                f"{backend} ({_gpu_platform() if backend == 'gpu' else backend}); use "
+                "report_channel='auto' or 'io_callback'."
+            )
+        return Choice("ring", "report_channel='ring' was asked for")
+    if backend != "gpu" or _gpu_platform() != "cuda":
+        return Choice("io_callback", f"the default backend is {backend}, not a CUDA GPU")
+    if version not in TESTED_JAX:
+        return Choice("io_callback", f"the ring is not tested on JAX {jax.__version__}")
+    try:
+        _private_jax()
+        from . import _cuda
+
+        driver = _cuda.driver().version()
+    except (ImportError, AttributeError, OSError, RuntimeError) as e:
+        return Choice("io_callback", f"the ring could not load: {e}")
+    if driver < MIN_CUDA_DRIVER:
+        return Choice("io_callback", f"the CUDA driver is {driver}, below {MIN_CUDA_DRIVER}")
+    flags = os.environ.get("XLA_FLAGS", "")
+    for flag in flags.split():
+        if flag.startswith("--xla_gpu_enable_command_buffer="):
+            kinds = flag.split("=", 1)[1].upper().split(",")
+            if "CONDITIONAL" not in kinds or "CUSTOM_CALL" not in kinds:
+                return Choice(
+                    "io_callback", f"{flag} leaves conditionals or custom calls out of graphs"
+                )
+    return Choice("ring", f"CUDA driver {driver}, JAX {jax.__version__}")
+
+
+def _gpu_platform() -> str:
+    """"cuda" or "rocm" (JAX names both backends "gpu"; the version string tells them
+    apart)."""
+    version = jax.devices()[0].client.platform_version.lower()
+    return next((p for p in ("cuda", "rocm") if p in version), version)
+
+
+class _Leaf(NamedTuple):
+    """How one payload array travels as uint32 words."""
+
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    words: int
+
+    @staticmethod
+    def of(x: Any) -> "_Leaf":
+        dtype = np.dtype(x.dtype)
+        size = int(np.prod(x.shape, dtype=np.int64))
+        return _Leaf(tuple(x.shape), dtype, size * (2 if dtype.itemsize == 8 else 1))
+
+    def encode(self, x: jax.Array) -> jax.Array:
+        if self.dtype.itemsize == 4 and self.dtype != np.bool_:
+            return jax.lax.bitcast_convert_type(x, jnp.uint32).reshape(-1)
+        if self.dtype.itemsize == 8:
+            return jax.lax.bitcast_convert_type(x, jnp.uint32).reshape(-1)
+        wide = jnp.float32 if jnp.issubdtype(x.dtype, jnp.floating) else jnp.int32
+        return jax.lax.bitcast_convert_type(x.astype(wide), jnp.uint32).reshape(-1)
+
+    def decode(self, words: np.ndarray) -> np.ndarray:
+        if self.dtype.itemsize in (4, 8) and self.dtype != np.bool_:
+            return words.view(self.dtype).reshape(self.shape)
+        wide = np.float32 if np.issubdtype(self.dtype, np.floating) else np.int32
+        return words.view(wide).astype(self.dtype).reshape(self.shape)
+
+
+class _Site:
+    """One payload layout (a tree structure and its arrays' shapes and dtypes): its
+    rings, one per device that may write it, and the last report taken from each."""
+
+    def __init__(self, treedef: Any, leaves: tuple[_Leaf, ...], slots: int):
+        self.treedef, self.leaves, self.slots = treedef, leaves, slots
+        self.words = sum(leaf.words for leaf in leaves)
+        self._nbytes = _ring.ring_words(self.words, slots) * 4
+        self._host: _ring.Ring | None = None
+        self._host_memory: Any = None
+        self._host_lock = threading.Lock()
+        self.rings: dict[Any, _ring.Ring] = {}
+        self.taken: dict[Any, int] = {}
+
+    def host_ring(self) -> _ring.Ring:
+        if self._host is None:
+            self._host_memory = np.zeros(self._nbytes // 4, np.uint32)
+            self._host = _ring.Ring(self._host_memory.ctypes.data, self.words, self.slots)
+            self.rings["host"] = self._host
+        return self._host
+
+    def cuda_rings(self) -> None:
+        """Pinned rings for every local CUDA device, and the kernel loaded on each (a
+        stream under capture may do neither)."""
+        from . import _cuda
+
+        driver = _cuda.driver()
+        for device in jax.local_devices(backend="gpu"):
+            ordinal = device.local_hardware_id
+            if ordinal in self.rings:
+                continue
+            driver.prepare(ordinal)
+            self.rings[ordinal] = _ring.Ring(driver.pinned(self._nbytes), self.words, self.slots)
+
+    def encode(self, leaves: list[jax.Array]) -> jax.Array:
+        return jnp.concatenate([leaf.encode(x) for leaf, x in zip(self.leaves, leaves)])
+
+    def decode(self, payload: bytes) -> Any:
+        words = np.frombuffer(payload, np.uint32)
+        arrays, offset = [], 0
+        for leaf in self.leaves:
+            arrays.append(leaf.decode(words[offset : offset + leaf.words]))
+            offset += leaf.words
+        return jax.tree.unflatten(self.treedef, arrays)
+
+    def put(self, ctx: Any, words: Any) -> None:
+        """The buffer callback: on a GPU it runs once per capture of XLA's command buffer
+        (or per execution outside one) and enqueues the ring kernel on XLA's stream; on the
+        CPU it runs per execution and writes the ring itself."""
+        try:
+            src = words.__cuda_array_interface__["data"][0]
+        except jax.errors.JaxRuntimeError:  # a CPU buffer: no device address
+            with self._host_lock:  # CPU devices run the callback concurrently
+                self.host_ring().write(np.asarray(words))
+            return
+        from . import _cuda
+
+        driver = _cuda.driver()
+        ring = self.rings[driver.current_device()]
+        driver.put(ctx.stream, src, ring.address, self.words, self.slots)
+
+
+# The custom calls behind `jax.experimental.buffer_callback`; on CUDA, the one XLA records
+# into its command buffer (the callback runs once per capture and enqueues the kernel).
+_TARGETS = {
+    "cpu": "xla_buffer_python_cpu_callback",
+    "cuda": "xla_buffer_python_gpu_callback_cmd_buffer",
+}
+
+
+def _send_primitive() -> Any:
+    """A primitive lowered as `buffer_callback(..., command_buffer_compatible=True)` is,
+    plus the sharding JAX gives its own callbacks: under automatic SPMD partitioning the
+    report is sent once, from the first device (as an `io_callback` is), not from every
+    device. `buffer_callback` itself sets no sharding, which XLA's partitioner refuses for
+    an op with side effects."""
+    buffer_callback, callback, core, dispatch, ffi, mlir = _private_jax()
+    prim = core.Primitive("jaxmetrics_report_send")
+    prim.multiple_results = True
+
+    def abstract(words: Any, *, site: _Site) -> Any:
+        return [], {buffer_callback._BufferCallbackEffect}
+
+    def lower(ctx: Any, words: Any, *, site: _Site) -> Any:
+        platform = ctx.module_context.platforms[0]
+        if len(ctx.module_context.platforms) > 1 or platform not in _TARGETS:
+            raise ValueError(
+                f"report_channel='ring' runs on CUDA GPUs and the CPU, not on "
+                f"{ctx.module_context.platforms}; use report_channel='io_callback'."
+            )
+
+        def put(exec_ctx: Any, words: Any) -> tuple[()]:
+            site.put(exec_ctx, words)
+            return ()
+
+        ctx.module_context.add_host_callback(put)
+        index = np.uint64(len(ctx.module_context.host_callbacks) - 1)
+        lowering = ffi.build_ffi_lowering_function(_TARGETS[platform], has_side_effect=True)
+        op = lowering(ctx, words, index=index)
+        axis_context = ctx.module_context.axis_context
+        sharding = callback._callback_op_sharding(axis_context, None, ctx.avals_out)
+        if sharding is not None:
+            mlir.set_sharding(ctx.module_context, op, sharding)
+        return op.results
+
+    prim.def_effectful_abstract_eval(abstract)
+    dispatch.simple_impl(prim)
+    mlir.register_lowering(prim, lower)
+    return prim
+
+
+_SEND: list[Any] = []
+_SEND_LOCK = threading.Lock()
+
+
+def _send_p() -> Any:
+    with _SEND_LOCK:
+        if not _SEND:
+            _SEND.append(_send_primitive())
+        return _SEND[0]
+
+
+def check_settings(requested: Any, slots: Any) -> None:
+    """Raises for a `report_channel` or `report_slots` a Logger cannot take."""
+    if requested not in CHANNELS:
+        raise ValueError(
+            f"Logger(report_channel=...) must be one of {CHANNELS}, got {requested!r}."
+        )
+    if isinstance(slots, bool) or not isinstance(slots, int) or not 1 <= slots <= 2**16:
+        raise ValueError(f"Logger(report_slots=...) must be an int in [1, 65536], got {slots!r}.")
+
+
+class Channel:
+    """`send(*payload)` in-graph hands `payload` (a tuple of arrays, or pytrees of them)
+    to the host, as arrays, in order.
+
+    Args:
+      callback: the `io_callback` channel's host function (the device waits for it).
+      deliver: the ring's host function, called on the channel's thread (one call at a
+        time, in the order the device sent the reports of one layout and device).
+      requested: "auto", "ring" or "io_callback".
+      slots: the ring's slots per layout and device: how many reports the host may fall
+        behind the device before one is lost.
+      on_error: where an exception of `deliver` goes (the channel's thread cannot raise).
+      poll_interval_s: how long the ring's thread sleeps between looks.
+
+    Attributes:
+      choice: the channel taken (`Choice`), decided at the first `send` traced (or the
+        first look at it).
+    """
+
+    def __init__(
+        self,
+        callback: Callable[..., None],
+        deliver: Callable[..., None],
+        requested: str = "auto",
+        slots: int = DEFAULT_SLOTS,
+        on_error: Callable[[BaseException], None] | None = None,
+        poll_interval_s: float = 1e-3,
+    ):
+        self._callback, self._deliver, self._requested = callback, deliver, requested
+        self._on_error = on_error
+        self.slots, self.poll_interval_s = slots, poll_interval_s
+        self._choice: Choice | None = None
+        self._sites: dict[Any, _Site] = {}
+        self._lock = threading.RLock()  # sites and takes; held while delivering
+        self._lost = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    @property
+    def choice(self) -> Choice:
+        if self._choice is None:
+            self._choice = choose(self._requested)
+            _log.debug("jaxmetrics report channel: %s (%s)", *self._choice)
+        return self._choice
+
+    def send(self, *payload: Any) -> None:
+        """In-graph: sends `payload` to the host (unordered with the program's other
+        effects; ordered with this channel's other reports)."""
+        if self.choice.kind == "io_callback":
+            io_callback(self._callback, None, *payload, ordered=True)
+            return
+        leaves, treedef = jax.tree.flatten(payload)
+        layout = (treedef, tuple(_Leaf.of(x) for x in leaves))
+        with self._lock:
+            site = self._sites.get(layout)
+            if site is None:
+                site = self._sites[layout] = _Site(*layout, self.slots)
+                if jax.default_backend() == "gpu":
+                    site.cuda_rings()
+                self._start()
+        _send_p().bind(site.encode(leaves), site=site)
+
+    def _start(self) -> None:
+        if self._thread is None:
+            self._thread = threading.Thread(
+                target=self._poll, name="jaxmetrics-report-channel", daemon=True
+            )
+            self._thread.start()
+
+    def _poll(self) -> None:
+        while not self._stop.wait(self.poll_interval_s):
+            self.take()
+
+    def take(self) -> None:
+        """Hands every whole report the rings hold now to `deliver`, in order."""
+        with self._lock:
+            for site in list(self._sites.values()):
+                for key, ring in list(site.rings.items()):
+                    taken = ring.take(site.taken.get(key, 0))
+                    site.taken[key] = taken.last
+                    self._lost += taken.lost
+                    for _, payload in taken.reports:
+                        try:
+                            self._deliver(*site.decode(payload))
+                        except Exception as e:  # noqa: BLE001 - kept for the caller
+                            if self._on_error is None:
+                                raise
+                            self._on_error(e)
+
+    def drain(self) -> None:
+        """After the device work that sends has finished (`jax.effects_barrier()`): every
+        report it sent is delivered (or counted as lost) when this returns."""
+        if self._thread is not None:
+            self.take()
+
+    def take_lost(self) -> int:
+        """Reports lost since the last call (overwritten before the host took them)."""
+        with self._lock:
+            lost, self._lost = self._lost, 0
+        return lost
+
+    def close(self) -> None:
+        """Stops the thread (after a last `drain`). The rings' memory stays: a compiled
+        program may still hold their addresses."""
+        self.drain()
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join()
