@@ -7,6 +7,7 @@ from ._count import Count as Count
 from ._history import History as History
 from ._logger import Logger as Logger
 from ._logger import NonFiniteError as NonFiniteError
+from ._logger import ReportsLostError as ReportsLostError
 from ._logger import WriterError as WriterError
 from ._logger import WriterTimeoutError as WriterTimeoutError
 from ._metrics import Metrics as Metrics
@@ -57,6 +58,7 @@ __all__ = [
     "Metrics",
     "MetricsState",
     "NonFiniteError",
+    "ReportsLostError",
     "Quantiles",
     "Record",
     "TagInfo",

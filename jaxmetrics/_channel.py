@@ -99,7 +99,7 @@ def choose(requested: str) -> Choice:
 
 
 def _gpu_platform() -> str:
-    """"cuda" or "rocm" (JAX names both backends "gpu"; the version string tells them
+    """ "cuda" or "rocm" (JAX names both backends "gpu"; the version string tells them
     apart)."""
     version = jax.devices()[0].client.platform_version.lower()
     return next((p for p in ("cuda", "rocm") if p in version), version)
@@ -178,6 +178,12 @@ class _Site:
             offset += leaf.words
         return jax.tree.unflatten(self.treedef, arrays)
 
+    def write_host(self, words: np.ndarray) -> None:
+        """Writes one report into the host ring (from any thread: CPU devices run their
+        callbacks concurrently)."""
+        with self._host_lock:
+            self.host_ring().write(words)
+
     def put(self, ctx: Any, words: Any) -> None:
         """The buffer callback: on a GPU it runs once per capture of XLA's command buffer
         (or per execution outside one) and enqueues the ring kernel on XLA's stream; on the
@@ -185,8 +191,7 @@ class _Site:
         try:
             src = words.__cuda_array_interface__["data"][0]
         except jax.errors.JaxRuntimeError:  # a CPU buffer: no device address
-            with self._host_lock:  # CPU devices run the callback concurrently
-                self.host_ring().write(np.asarray(words))
+            self.write_host(np.asarray(words))
             return
         from . import _cuda
 
@@ -208,13 +213,16 @@ def _send_primitive() -> Any:
     plus the sharding JAX gives its own callbacks: under automatic SPMD partitioning the
     report is sent once, from the first device (as an `io_callback` is), not from every
     device. `buffer_callback` itself sets no sharding, which XLA's partitioner refuses for
-    an op with side effects."""
+    an op with side effects. It has one (unused, unwritten) scalar result, as a host
+    callback with a sharding needs one."""
     buffer_callback, callback, core, dispatch, ffi, mlir = _private_jax()
     prim = core.Primitive("jaxmetrics_report_send")
     prim.multiple_results = True
 
+    unused = core.ShapedArray((), np.uint32)
+
     def abstract(words: Any, *, site: _Site) -> Any:
-        return [], {buffer_callback._BufferCallbackEffect}
+        return [unused], {buffer_callback._BufferCallbackEffect}
 
     def lower(ctx: Any, words: Any, *, site: _Site) -> Any:
         platform = ctx.module_context.platforms[0]
@@ -223,20 +231,37 @@ def _send_primitive() -> Any:
                 f"report_channel='ring' runs on CUDA GPUs and the CPU, not on "
                 f"{ctx.module_context.platforms}; use report_channel='io_callback'."
             )
+        axis_context = ctx.module_context.axis_context
+        sharding = callback._callback_op_sharding(axis_context, None, ctx.avals_out)
+        if sharding is not None:
+            # Automatic SPMD partitioning: Shardy keeps the sharding of JAX's own host
+            # callbacks only, so the report takes one (run from the host, outside any
+            # CUDA graph) that writes the same ring, once, from the first device.
+            def write(words: Any) -> tuple[np.ndarray]:
+                site.write_host(np.asarray(words))
+                return (np.zeros((), np.uint32),)
 
-        def put(exec_ctx: Any, words: Any) -> tuple[()]:
+            results, _, _ = callback.emit_python_callback(
+                ctx,
+                write,
+                None,
+                [words],
+                ctx.avals_in,
+                ctx.avals_out,
+                has_side_effect=True,
+                returns_token=False,
+                sharding=sharding,
+            )
+            return results
+
+        def put(exec_ctx: Any, words: Any, unused: Any) -> tuple[()]:
             site.put(exec_ctx, words)
             return ()
 
         ctx.module_context.add_host_callback(put)
         index = np.uint64(len(ctx.module_context.host_callbacks) - 1)
         lowering = ffi.build_ffi_lowering_function(_TARGETS[platform], has_side_effect=True)
-        op = lowering(ctx, words, index=index)
-        axis_context = ctx.module_context.axis_context
-        sharding = callback._callback_op_sharding(axis_context, None, ctx.avals_out)
-        if sharding is not None:
-            mlir.set_sharding(ctx.module_context, op, sharding)
-        return op.results
+        return lowering(ctx, words, index=index).results
 
     prim.def_effectful_abstract_eval(abstract)
     dispatch.simple_impl(prim)

@@ -27,6 +27,7 @@ from ._metrics import Metrics
 from ._state import MetricsState
 from ._validate import is_int
 
+
 class ReportSink(Protocol):
     """What a reporting wrapper hands its reports to (a `jaxmetrics.Logger`)."""
 

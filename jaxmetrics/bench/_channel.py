@@ -1,11 +1,11 @@
 """The report channels side by side in a jitted loop: records and time per step.
 
-A scanned step of `--kernels` small dependent kernels (each its own kernel) over `--envs` floats (a cheap env
-step, where a host round trip per step shows), logging one value per step, emitting a
-report every `--period` steps through `Logger.emit` with `report_channel` "ring" and
-"io_callback", the same loop with no emit (`none`), and with a pure `lax.cond` of the
-same period in place of the emit (`cond_pure`). Each variant runs `--repeats`
-times after a warm-up; the records of both channels are checked equal to each other and
+A scanned step of `--kernels` small dependent kernels (each its own kernel) over `--envs`
+floats (a cheap env step, where a host round trip per step shows), logging one value per
+step, emitting a report every `--period` steps through `Logger.emit` with `report_channel`
+"ring" and "io_callback", the same loop with no emit (`none`), and with a pure `lax.cond`
+of the same period in place of the emit (`cond_pure`). Each variant runs `--repeats` times
+after a warm-up; the records of both channels are checked equal to each other and
 to a float64 reference of the period means.
 
 `python -m jaxmetrics.bench._channel --out F.json`
@@ -96,9 +96,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             xs = np.sin(xs.astype(np.float32)).astype(np.float32) * np.float32(1.0001)
             xs = (xs + np.float32(1e-3)).astype(np.float32)
         firsts.append(float(xs[0]) + i)
-    ref = [
-        float(np.mean(firsts[k : k + args.period])) for k in range(0, args.steps, args.period)
-    ]
+    ref = [float(np.mean(firsts[k : k + args.period])) for k in range(0, args.steps, args.period)]
     calls = 1 + args.repeats
     same = records["ring"] == records["io_callback"]
     got = [v for _, v in records["ring"]][: len(ref)]

@@ -242,9 +242,7 @@ def run_one(spec: str, args: argparse.Namespace, counter: CompileCounter) -> dic
         logdir = tempfile.mkdtemp(prefix=f"playground_{impl}_")
         writer = ArrivalWriter(t0)
         channel = "io_callback" if wrap == "jaxmetrics_io" else "auto"
-        logger = jm.Logger(
-            metrics, [jm.TensorBoardWriter(logdir), writer], report_channel=channel
-        )
+        logger = jm.Logger(metrics, [jm.TensorBoardWriter(logdir), writer], report_channel=channel)
         result["report_channel"] = logger.report_channel._asdict()
         extra["wrap_env_fn"] = functools.partial(
             jmp.wrap, metrics=metrics, logger=logger, report_every=report_every

@@ -1,0 +1,176 @@
+"""The report channel: the ring in host memory (written here by the CPU's host function, in
+the bytes and order the GPU's kernel uses; read by the channel's thread) against the
+ordered io_callback, the seqlock reader under a concurrent writer, and lost reports."""
+
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxmetrics as jm
+from jaxmetrics import _channel, _ring
+
+SEEDS, STEPS, PERIOD, NUM_ENVS = 2, 24, 4, 3
+
+
+def _spec() -> jm.Metrics:
+    return jm.Metrics(
+        terms={"speed": jm.Term(lambda x: x, reduce="max", stats=("mean", "std", "count"))},
+        logged={"loss": jm.Logged(stats=("mean", "max", "count", jm.window(5)))},
+    )
+
+
+def _train(metrics, logger, seed, run, offset):
+    def body(state, i):
+        v = seed * 100.0 + i.astype(jnp.float32) ** 2 / 8.0
+        state = metrics.log(state, {"loss": v})
+        speed = v + jnp.arange(NUM_ENVS, dtype=jnp.float32)
+        state = metrics.update(state, speed, jnp.ones(NUM_ENVS, jnp.bool_))
+        return logger.emit(state, i + offset, i % PERIOD == PERIOD - 1, run=run), None
+
+    return jax.lax.scan(body, metrics.init(NUM_ENVS), jnp.arange(STEPS))[0]
+
+
+def _records(channel: str):
+    metrics = _spec()
+    memory = [jm.MemoryWriter() for _ in range(SEEDS)]
+    logger = jm.Logger(metrics, lambda r: [memory[r]], runs=SEEDS, report_channel=channel)
+    for offset in (0, STEPS):  # a second program continues the ring's sequence
+        train = jax.jit(jax.vmap(lambda s, r, o=offset: _train(metrics, logger, s, r, o)))
+        train(jnp.arange(SEEDS, dtype=jnp.float32), jnp.arange(SEEDS))
+    logger.close()
+    assert logger.report_channel.kind == channel
+    # Everything but the rates, which are measured in host wall time.
+    return [
+        [(r.step, {t: v for t, v in r.scalars.items() if not t.endswith("/per_sec")},
+          r.histograms) for r in m.records]
+        for m in memory
+    ]  # fmt: skip
+
+
+def test_the_ring_writes_the_records_the_io_callback_writes_and_a_float64_loop_expects():
+    ring, io = _records("ring"), _records("io_callback")
+    assert repr(ring) == repr(io)  # same steps, tags and bits, in the same order
+    ends = list(range(PERIOD - 1, STEPS, PERIOD))
+    for seed, records in enumerate(ring):
+        assert [step for step, _, _ in records] == ends + [e + STEPS for e in ends]
+        for k, (_, scalars, _) in enumerate(records[: len(ends)]):
+            steps = np.arange(k * PERIOD, (k + 1) * PERIOD, dtype=np.float64)
+            loss = np.float32(100.0 * seed) + (steps**2 / 8.0).astype(np.float32)
+            assert scalars["Train/loss"] == pytest.approx(loss.astype(np.float64).mean())
+            assert scalars["Train/loss/count"] == PERIOD
+            speeds = (loss[:, None] + np.arange(NUM_ENVS)).ravel()
+            assert scalars["Episode_Metrics/speed"] == pytest.approx(speeds.mean())
+
+
+def test_auto_takes_the_io_callback_on_the_cpu_and_says_why():
+    logger = jm.Logger(_spec(), [jm.MemoryWriter()])
+    choice = logger.report_channel
+    logger.close()
+    assert choice.kind == "io_callback" and "not a CUDA GPU" in choice.reason
+
+
+def test_bad_channel_settings_are_named():
+    with pytest.raises(ValueError, match=r"report_channel=\.\.\.\) must be one of"):
+        jm.Logger(_spec(), [jm.MemoryWriter()], report_channel="fast")
+    with pytest.raises(ValueError, match=r"report_slots=\.\.\.\) must be an int"):
+        jm.Logger(_spec(), [jm.MemoryWriter()], report_slots=0)
+
+
+def test_the_reader_never_takes_a_torn_report_from_a_ring_written_concurrently():
+    """A writer thread fills a 3-slot ring as fast as it can (each payload all its seq);
+    the reader looks concurrently. Every report taken is whole and newer than the last,
+    and taken + lost accounts for every report written."""
+    words, slots, total = 64, 3, 20_000
+    memory = np.zeros(_ring.ring_words(words, slots), np.uint32)
+    ring = _ring.Ring(memory.ctypes.data, words, slots)
+    done = threading.Event()
+
+    def write():
+        for seq in range(1, total + 1):
+            ring.write(np.full(words, seq, np.uint32))
+        done.set()
+
+    writer = threading.Thread(target=write)
+    writer.start()
+    last, lost, taken = 0, 0, []
+    while True:
+        finished = done.is_set()
+        got = ring.take(last)
+        for seq, payload in got.reports:
+            assert seq > last
+            assert (np.frombuffer(payload, np.uint32) == seq).all(), f"torn report {seq}"
+            taken.append(seq)
+            last = seq
+        lost, last = lost + got.lost, got.last
+        if finished:
+            break
+    writer.join()
+    assert taken == sorted(set(taken))
+    assert last == total and len(taken) + lost == total
+    assert taken and lost  # both happened: the reader raced the writer for real
+
+
+def test_a_slow_consumer_loses_reports_counts_them_and_keeps_the_rest_in_order():
+    """The channel's thread hands reports to a consumer that blocks: the device (here the
+    CPU's host function) goes on writing the 2-slot ring, so reports are overwritten; the
+    ones taken are whole and in order, and the lost ones are counted."""
+    delivered = []
+    gate = threading.Event()
+
+    def deliver(values):
+        gate.wait(0.05)  # a writer that blocks
+        delivered.append(int(values[0]))
+
+    channel = _channel.Channel(lambda v: None, deliver, "ring", slots=2)
+
+    def body(c, i):
+        jax.lax.cond(i % 2 == 1, lambda: channel.send(jnp.stack([i, i * i])), lambda: None)
+        return c, None
+
+    jax.jit(lambda: jax.lax.scan(body, 0, jnp.arange(40))[0])()
+    jax.effects_barrier()
+    channel.drain()
+    lost = channel.take_lost()
+    channel.close()
+    assert delivered == sorted(set(delivered)) and set(delivered) <= set(range(1, 40, 2))
+    assert lost > 0 and len(delivered) + lost == 20
+
+
+def test_a_logger_whose_ring_overflows_raises_at_close_naming_the_loss_and_the_fix():
+    metrics = jm.Metrics(logged=["x"])
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [memory], report_channel="ring", report_slots=1)
+
+    def body(state, i):
+        state = metrics.log(state, {"x": i.astype(jnp.float32)})
+        return logger.emit(state, i, jnp.bool_(True)), None
+
+    jax.jit(lambda: jax.lax.scan(body, metrics.init(1), jnp.arange(500))[0])()
+    with pytest.raises(jm.ReportsLostError, match=r"report_slots=2") as error:
+        logger.close()
+    steps = [r.step for r in memory.records]
+    assert steps == sorted(set(steps))
+    assert all(r.scalars["Train/x"] == r.step for r in memory.records)  # each its own step
+    assert error.value.lost == 500 - len(steps) > 0
+
+
+def test_the_ring_sends_a_sharded_state_s_report_once_not_once_per_device(env_sharded):
+    """Under automatic partitioning the report is sent from one device, as an io_callback
+    is: one record, not one per device (XLA refuses a side effect with no sharding)."""
+    metrics = jm.Metrics(terms={"speed": jm.Term(lambda x: x, stats=("mean", "count"))})
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [memory], report_channel="ring")
+
+    def step(state, x):
+        state = metrics.update(state, x, jnp.ones(8, jnp.bool_))
+        return logger.emit(state, 5, True)
+
+    x = jax.device_put(jnp.arange(8.0, dtype=jnp.float32), env_sharded)
+    jax.jit(step)(metrics.init(8), x)
+    logger.close()
+    (record,) = memory.records
+    assert (record.step, record.scalars["Episode_Metrics/speed"]) == (5, 3.5)
+    assert record.scalars["Episode_Metrics/speed/count"] == 8
