@@ -33,6 +33,7 @@ from ._tags import TagInfo as TagInfo
 from ._wrap_step import Transition as Transition
 from ._wrap_step import wrap_step as wrap_step
 from ._writers import ConsoleWriter as ConsoleWriter
+from ._writers import ForeignFileError as ForeignFileError
 from ._writers import JsonlWriter as JsonlWriter
 from ._writers import MemoryWriter as MemoryWriter
 from ._writers import MLflowWriter as MLflowWriter
@@ -43,6 +44,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "ConsoleWriter",
+    "ForeignFileError",
     "Count",
     "Discounted",
     "Ema",

@@ -2,6 +2,7 @@
 when created."""
 
 from ._console import ConsoleWriter as ConsoleWriter
+from ._jsonl import ForeignFileError as ForeignFileError
 from ._jsonl import JsonlWriter as JsonlWriter
 from ._memory import MemoryWriter as MemoryWriter
 from ._mlflow import MLflowWriter as MLflowWriter

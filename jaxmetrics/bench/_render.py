@@ -19,7 +19,7 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
-from . import _brax_results
+from . import _brax_results, _in_trainer
 from ._report import Table
 from ._targets import NOTE, order, targets
 
@@ -59,6 +59,8 @@ def tables(doc: dict[str, Any]) -> list[Table]:
         return [_env_sync_table(doc)]
     if doc.get("benchmark") == "graph_callback":
         return [_graph_callback_table(doc)]
+    if doc.get("benchmark") == "in_trainer":
+        return [_in_trainer.table(doc)]
     return [Table.from_dict(n, d) for n, d in doc["scenarios"].items() if n != TARGETS]
 
 
@@ -267,6 +269,13 @@ def source(name: str, doc: dict[str, Any]) -> str:
             f"`{name}`: {e['device']}; jax {e['jax']}, mujoco-mjx {e['mujoco_mjx']}, playground "
             f"{e['playground']}, warp-lang {e['warp_lang']}; median of {n['repeats']} calls per "
             "variant, each case (physics, XLA_FLAGS) in a fresh process."
+        )
+    if doc.get("benchmark") == "in_trainer":
+        return (
+            f"`{name}`: {doc['device']}, tree `{doc['commit']}`; jax {doc['jax']}. Runs of "
+            "the wrappers alternate in one process on one machine; steady env steps/s leave "
+            "out the intervals in which a compile ended; the cost is the steady steps/s lost "
+            "against the trainer's own wrapper, in %."
         )
     env = doc["environment"]
     if doc.get("benchmark") == "playground_ppo_train":

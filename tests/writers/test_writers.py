@@ -386,16 +386,37 @@ def test_tensorboard_writer_rejects_bad_options_at_creation(tmp_path):
         b"notes\nlast line without newline",
         b'{"step":1,"wall_time":2.0,"scalars":{},"histograms":{},"windows":{}}',  # whole, unterminated
         b'{"step":1,"wall_time":2.0,"scalars":{},"histograms":{},"windows":{}}\n{"a": 1}\n',
+        # Another program's JSON that starts like this writer's lines, and a lone brace:
+        b'{"step": 10, "lr": 0.1, "note": "my config"}',  # json.dump: no final newline
+        b'{"step":10,"lr":0.1}',
+        b"{",
     ],
 )
 def test_jsonl_writer_refuses_a_file_that_is_not_its_own_and_touches_nothing(tmp_path, content):
     path = tmp_path / "config.json"
     path.write_bytes(content)
     os.chmod(path, 0o600)
-    with pytest.raises(ValueError, match=r"config.json.*not a JsonlWriter record.*left untouched"):
+    with pytest.raises(
+        jm.ForeignFileError, match=r"config.json.*not a JsonlWriter record.*left untouched"
+    ):
         jm.JsonlWriter(path)
     assert path.read_bytes() == content
     assert os.stat(path).st_mode & 0o777 == 0o600
+
+
+@pytest.mark.parametrize(
+    ("before", "cut"),
+    [
+        (b"", b'{"step":2,"wall_time":3.0,"scal'),  # the first record, cut
+        (b'{"step":1,"wall_time":2.0,"scalars":{},"histograms":{},"windows":{}}\n', b"{"),
+        (b'{"step":1,"wall_time":2.0,"scalars":{},"histograms":{},"windows":{}}\n', b'{"step":1'),
+    ],
+)
+def test_jsonl_writer_drops_only_its_own_cut_record(tmp_path, before, cut):
+    path = tmp_path / "m.jsonl"
+    path.write_bytes(before + cut)
+    jm.JsonlWriter(path).close()
+    assert path.read_bytes() == before
 
 
 def test_jsonl_writer_repairs_a_crash_cut_record_keeping_mode_and_symlink(tmp_path):
@@ -409,3 +430,20 @@ def test_jsonl_writer_repairs_a_crash_cut_record_keeping_mode_and_symlink(tmp_pa
     assert os.path.islink(link) and os.readlink(link) == str(real)
     assert real.read_bytes() == record
     assert os.stat(real).st_mode & 0o777 == 0o640
+
+
+def test_jsonl_writer_refuses_a_fifo_at_once_instead_of_blocking(tmp_path):
+    fifo = tmp_path / "pipe.jsonl"
+    os.mkfifo(fifo)
+    with pytest.raises(ValueError, match=r"pipe.jsonl.*not a regular file"):
+        jm.JsonlWriter(fifo)  # used to block for ever in open()
+
+
+def test_two_runs_given_one_jsonl_path_are_refused_when_the_writers_are_made(tmp_path):
+    path = tmp_path / "m.jsonl"
+    metrics = jm.Metrics(logged=["x"])
+    with pytest.raises(ValueError, match=r"another JsonlWriter .* has it open.*its own file"):
+        jm.Logger(metrics, lambda run: [jm.JsonlWriter(path)], runs=2)
+    writer = jm.JsonlWriter(path)  # the refused Logger left the file free again
+    writer.close()
+    jm.JsonlWriter(os.path.join(tmp_path, ".", "m.jsonl")).close()  # and after close
