@@ -65,14 +65,16 @@ class Window:
             )
         ps = tuple(self.percentiles)
         for p in ps:
-            if not is_number(p) or not (0 <= p <= 100):
+            if not is_number(p) or not _statistics.is_level(p):
                 raise ValueError(
-                    f"window percentiles must be numbers in [0, 100], got {p!r} in {ps!r}."
+                    f"window percentiles must be numbers in [0, 100] with at most "
+                    f"{_statistics.LEVEL_DECIMALS} decimals, got {p!r} in {ps!r}."
                 )
+        ps = tuple(float(p) + 0.0 for p in ps)  # -0.0 is 0.0
         if len(set(ps)) != len(ps):
             raise ValueError(f"window percentiles must be distinct, got {ps!r}.")
         object.__setattr__(self, "size", int(n))
-        object.__setattr__(self, "percentiles", tuple(float(p) for p in ps))
+        object.__setattr__(self, "percentiles", ps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,16 +138,17 @@ def check_quantiles(q: Quantiles, where: str) -> Quantiles:
             f"in [0, 100], got {q.levels!r}. Use e.g. jaxmetrics.quantiles((50, 90, 99))."
         )
     for p in levels:
-        if not is_number(p) or not (0 <= p <= 100) or abs(p * 1e4 - round(p * 1e4)) > 1e-6:
+        if not is_number(p) or not _statistics.is_level(p):
             raise ValueError(
-                f"{where}: quantile levels must be percentiles in [0, 100] with at most 4 "
-                f"decimals, got {p!r} in {levels!r}."
+                f"{where}: quantile levels must be percentiles in [0, 100] with at most "
+                f"{_statistics.LEVEL_DECIMALS} decimals, got {p!r} in {levels!r}."
             )
-    if len(set(levels)) != len(levels):
+    floats = tuple(float(p) + 0.0 for p in levels)  # -0.0 is 0.0
+    if len(set(floats)) != len(floats):
         raise ValueError(
             f"{where}: quantile levels must be distinct, got {levels!r}; list each once."
         )
-    return Quantiles(tuple(float(p) for p in levels), float(a))
+    return Quantiles(floats, float(a))
 
 
 def ema(coeff: float = 0.01) -> Ema:

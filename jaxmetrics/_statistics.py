@@ -41,8 +41,11 @@ class Statistic(NamedTuple):
     overflow: str | None = None
 
 
-_PERCENTILE = "window_p{p:g}"
-_QUANTILE = "q{p:g}"
+_PERCENTILE = "window_p{p}"
+_QUANTILE = "q{p}"
+LEVEL_DECIMALS = 4
+"""Percentile levels (window percentiles, quantiles) have at most this many decimals, so
+that each has an exact tag."""
 
 STATISTICS = (
     Statistic("mean", "", "simple", "float", "mean", overflow="period"),
@@ -88,14 +91,27 @@ _BY_NAME = {s.name: s for s in STATISTICS}
 _FAMILIES = {t.split("{", 1)[0]: t for t in (_PERCENTILE, _QUANTILE)}
 
 
+def level(p: float) -> str:
+    """A percentile level as tags write it: exact to `LEVEL_DECIMALS` decimals, no trailing
+    zeros, no exponent (`50`, `99.9`, `0.0001`, `12.3457`)."""
+    text = f"{p:.{LEVEL_DECIMALS}f}".rstrip("0").rstrip(".")
+    return "0" if text == "-0" else text
+
+
+def is_level(p: float) -> bool:
+    """Whether `p` is a percentile in [0, 100] with at most `LEVEL_DECIMALS` decimals."""
+    scaled = p * 10**LEVEL_DECIMALS
+    return 0 <= p <= 100 and abs(scaled - round(scaled)) <= 1e-6
+
+
 def percentile(p: float) -> str:
     """The statistic name of window percentile `p`: `window_p50`, `window_p99.9`."""
-    return _PERCENTILE.format(p=p)
+    return _PERCENTILE.format(p=level(p))
 
 
 def quantile(p: float) -> str:
     """The statistic name of period quantile `p` (a percentile): `q50`, `q99.9`."""
-    return _QUANTILE.format(p=p)
+    return _QUANTILE.format(p=level(p))
 
 
 def get(name: str) -> Statistic:

@@ -120,7 +120,8 @@ def _window_columns(
         for p, v in zip(uniq, _percentiles(srt, filled, uniq, dt)):
             at = tuple(j for j, ps in enumerate(wanted) if p in ps)
             v = jnp.where(has_nan, jnp.nan, v)
-            columns.append((f"window_p{p:g}", tuple(g.rows[j] for j in at), take_rows(at, v)))
+            rows = tuple(g.rows[j] for j in at)
+            columns.append((_statistics.percentile(p), rows, take_rows(at, v)))
     return columns
 
 

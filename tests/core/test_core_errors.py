@@ -311,3 +311,24 @@ def test_a_stack_of_states_is_refused_where_one_state_is_expected():
     per_seed = jax.vmap(m.compute)(stacked)
     means = np.asarray(per_seed["Episode_Metrics/r"])
     np.testing.assert_allclose(means, [(r[0] + r[2]) / 2 for r in rewards.astype(np.float64)])
+
+
+@pytest.mark.parametrize("make", [lambda ps: jm.window(8, percentiles=ps), jm.quantiles])
+def test_percentile_levels_have_exact_tags_and_more_than_4_decimals_are_refused(make):
+    def spec(levels):
+        return jm.Metrics(logged={"x": jm.Logged(stats=(make(levels),))})
+
+    for bad in [(12.34567,), (1e-5,), (12.34567, 12.34568)]:
+        with pytest.raises(ValueError, match=r"at most 4 decimals, got "):
+            spec(bad)
+    metrics = spec((12.3456, 12.3457, 1e-4, -0.0, 99.9, 100))
+    levels = [t.stat.split("_p")[-1].lstrip("q") for t in metrics.tags if t.stat[-1].isdigit()]
+    assert levels == ["12.3456", "12.3457", "0.0001", "0", "99.9", "100"]
+
+
+def test_a_window_percentile_of_minus_zero_is_the_0th_percentile():
+    metrics = jm.Metrics(logged={"x": jm.Logged(stats=(jm.window(4, percentiles=(-0.0, 50)),))})
+    state = metrics.log(metrics.init(1), {"x": jnp.array([3.0, 1.0, 2.0], jnp.float32)})
+    report = metrics.compute(state)  # raised KeyError: 'window_p-0'
+    assert float(report["Train/x/window_p0"]) == 1.0
+    assert float(report["Train/x/window_p50"]) == np.percentile([3.0, 1.0, 2.0], 50)
