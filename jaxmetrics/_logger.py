@@ -352,16 +352,22 @@ class Logger(AbstractContextManager):
     def close(self) -> None:
         """Drains everything in order, closes the writers and stops the writer thread.
 
-        Idempotent. Raises what was deferred, after the writers are closed.
+        Idempotent, and it returns only once everything is written: a `close` called
+        while another thread's `close` drains waits for it (that one raises what was
+        deferred). Raises what was deferred, after the writers are closed.
         """
         if self._thread.closed:
+            self._thread.wait_stopped("close")
             return
         jax.effects_barrier()  # emits still in flight land before the door closes
         self._channel.close()
         if not self._thread.stop(self._runs.drain_summary, self._runs.close_writers):
+            self._thread.wait_stopped("close")
             return
-        _close_at_exit.forget(self)
+        # Registered until the writer thread has stopped: if the thread that closes is a
+        # daemon and the interpreter exits meanwhile, the exit handler waits for the rest.
         self._thread.wait_stopped("close")
+        _close_at_exit.forget(self)
         self._surface()
 
     def __exit__(self, *exc: object) -> None:

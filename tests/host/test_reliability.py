@@ -105,6 +105,65 @@ def test_close_racing_a_flush_never_loses_a_flush_that_returned():
     assert lost == []
 
 
+class _Slow:
+    """A writer that takes `seconds` per record."""
+
+    def __init__(self, seconds):
+        self.seconds, self.written = seconds, []
+
+    def open(self, tags):
+        pass
+
+    def write(self, record):
+        time.sleep(self.seconds)
+        self.written.append(record.step)
+
+    def close(self):
+        pass
+
+
+def test_a_close_racing_another_close_returns_only_once_everything_is_written():
+    # The second close() returned at once with 0 of 5 records written.
+    slow = _Slow(0.05)
+    logger = jm.Logger(METRICS, [slow])
+    for step in range(5):
+        logger.flush(_state(float(step)), step)
+    other = threading.Thread(target=logger.close)
+    other.start()
+    while not logger._thread.closed:  # the other close holds the door
+        time.sleep(0.001)
+    logger.close()
+    assert slow.written == [0, 1, 2, 3, 4]
+    other.join()
+
+
+def test_a_daemon_thread_closing_at_exit_still_gets_every_record_written(tmp_path):
+    # The process exited 0 with 1 of 5 records: the exit handler had already forgotten
+    # the logger that the daemon thread was closing.
+    path = tmp_path / "m.jsonl"
+    script = textwrap.dedent(
+        f"""
+        import threading, time
+        import jaxmetrics as jm
+
+        class Slow(jm.JsonlWriter):
+            def write(self, record):
+                time.sleep(0.1)
+                super().write(record)
+
+        metrics = jm.Metrics(logged=["x"])
+        logger = jm.Logger(metrics, [Slow({str(path)!r})])
+        for step in range(5):
+            logger.flush(metrics.log(metrics.init(0), {{"x": float(step)}}), step)
+        threading.Thread(target=logger.close, daemon=True).start()
+        time.sleep(0.05)
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert [d["step"] for d in _jsonl(path)] == [0, 1, 2, 3, 4]
+
+
 def test_every_writer_error_reaches_the_caller_naming_writer_run_and_step():
     # 6 failures once surfaced as 1 (the first), the rest vanished.
     a, b, gated = _Failing("a", {1, 2, 3}), _Failing("b", {1, 2, 3}), _Gated()
