@@ -124,6 +124,18 @@ class EmitReceiver:
             step = to_int(step)
         # io_callback hands over jax Arrays: one copy to numpy here, not a device
         # dispatch per statistic when the writer thread unpacks them.
+        if from_wrapper and np.ndim(when) == 0 and self._runs > 1:
+            # A wrapper reports under vmap with one run per seed; unvmapped, every record
+            # would go to run 0.
+            self._reports.error(
+                ValueError(
+                    f"a reporting wrapper's Logger has runs={self._runs}, but the wrapper is "
+                    "not vmapped over seeds, so its reports were not written (each would have "
+                    "gone to run 0). Create the Logger with runs=1, or vmap the training over "
+                    f"{self._runs} seeds."
+                )
+            )
+            return
         n = int(np.size(when))
         floats = np.reshape(np.asarray(packed[0]), (n, -1))
         counts = np.reshape(np.asarray(packed[1]), (n, 2, -1))

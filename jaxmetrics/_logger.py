@@ -238,6 +238,11 @@ class Logger(AbstractContextManager):
         return self._emitted.calls
 
     @property
+    def closed(self) -> bool:
+        """Whether `close()` has been called (by any thread)."""
+        return self._thread.closed
+
+    @property
     def report_channel(self) -> _channel.Choice:
         """The channel in-graph reports take, and why (see the class docstring)."""
         return self._channel.choice
@@ -421,7 +426,12 @@ class Logger(AbstractContextManager):
         """The reporting wrappers' in-graph emit (`_reporting.ReportSink`), not for user
         code: the step is an exact `Count` (env steps pass 2^31 in long runs), and under
         `vmap` each seed's position on the vmapped axis is its run."""
-        self._thread.check_open("emit")
+        if self._thread.closed:
+            raise RuntimeError(
+                "the Logger given to a reporting wrapper (jmb.wrap, jmp.wrap, "
+                "jm.wrap_step(..., logger=)) is closed; give the wrapper an open Logger "
+                "(create a new one for each training)."
+            )
         return self._wrapper_emit(state, step, when, jnp.zeros((), jnp.int32))
 
     # ------------------------------------------------------------------ report history

@@ -36,6 +36,7 @@ class ReportSink(Protocol):
         ...
 
 
+MAX_REPORT_EVERY = 2**62
 DEFAULT_PERIOD_CALLS = 100
 """Without `report_every`, a wrapper reports every 100 steps of its env batch."""
 
@@ -86,10 +87,17 @@ class Reporter:
                 f"{where}(logger=...): the spec has no terms, so it counts no env steps to "
                 "report at; give it terms, or flush the state yourself."
             )
-        if report_every is not None and (not is_int(report_every) or report_every < 1):
+        if report_every is not None and (
+            not is_int(report_every) or not 1 <= report_every <= MAX_REPORT_EVERY
+        ):
             raise ValueError(
-                f"{where}(report_every=...) must be a positive int (env steps over all envs) "
-                f"or None, got {report_every!r}."
+                f"{where}(report_every=...) must be an int in [1, 2^62] (env steps over all "
+                f"envs) or None, got {report_every!r}."
+            )
+        if logger.closed:
+            raise RuntimeError(
+                f"{where}(logger=...): the Logger is closed; give the wrapper an open Logger "
+                "(create a new one for each training)."
             )
         if axis_name is not None and not isinstance(axis_name, str):
             raise TypeError(f"{where}(axis_name=...) must be a str or None, got {axis_name!r}.")
@@ -112,7 +120,15 @@ class Reporter:
         devices = axis_size(self.axis_name) or 1
         if self.report_every is None:
             return DEFAULT_PERIOD_CALLS
-        return max(1, math.ceil(self.report_every / (num_envs * steps_per_call * devices)))
+        calls = max(1, math.ceil(self.report_every / (num_envs * steps_per_call * devices)))
+        if calls > 2**31 - 1:  # the clock is an int32
+            raise ValueError(
+                f"report_every={self.report_every} is {calls} steps of this batch of "
+                f"{num_envs * steps_per_call * devices} env steps, past the period clock's "
+                f"2^31 - 1; give a report_every of at most "
+                f"{(2**31 - 1) * num_envs * steps_per_call * devices}."
+            )
+        return calls
 
     def __call__(
         self, state: MetricsState, clock: jax.Array, num_envs: int, steps_per_call: int

@@ -59,7 +59,7 @@ class Window:
             raise ValueError(
                 f"window size {n} is over {MAX_WINDOW} (2^20): a window keeps its values and "
                 "their arrival steps in the state, in every metric and group that has it "
-                f"(window({n}) needs {8 * n / 2**30:.1f} GiB per metric in float32), and each "
+                f"(window({n}) needs {8 * n / 2**20:,.1f} MiB per metric in float32), and each "
                 "report sorts them. For statistics over more values use the period "
                 "statistics or jaxmetrics.quantiles(...)."
             )

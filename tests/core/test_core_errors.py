@@ -64,7 +64,11 @@ def test_bad_spec_rejected_when_built(kwargs, match):
         (lambda: jm.window(0), r"window size must be a positive int, got 0"),
         (lambda: jm.window(-3), r"window size must be a positive int"),
         (lambda: jm.window(2.5), r"window size must be a positive int"),
-        (lambda: jm.window(2**31), r"window size 2147483648 is over 1048576 .*16.0 GiB per metric"),
+        (lambda: jm.window(2**20 + 1), r"window\(1048577\) needs 8.0 MiB per metric"),
+        (
+            lambda: jm.window(2**31),
+            r"window size 2147483648 is over 1048576 .*16,384.0 MiB per metric",
+        ),
         (lambda: jm.window(10, percentiles=(101,)), r"percentiles must be numbers in \[0, 100\]"),
         (lambda: jm.ema(0.0), r"ema coefficient must be a number in \(0, 1\], got 0.0"),
         (lambda: jm.ema(1.5), r"ema coefficient must be a number in \(0, 1\]"),

@@ -228,8 +228,11 @@ def test_bad_input_is_named_when_the_wrapper_is_built():
     other = jm.Metrics(terms={"x": jm.Term(lambda t: t.reward)})
     with pytest.raises(ValueError, match="Logger was built for another Metrics spec"):
         jm.wrap_step(_step, other, logger=logger)
-    with pytest.raises(ValueError, match=r"report_every=\.\.\.\) must be a positive int"):
-        jm.wrap_step(_step, metrics, logger=logger, report_every=0)
+    for bad in (0, 2**63):  # 2^33 used to pass here and fail at trace time on an "y"
+        with pytest.raises(
+            ValueError, match=r"report_every=\.\.\.\) must be an int in \[1, 2\^62\]"
+        ):
+            jm.wrap_step(_step, metrics, logger=logger, report_every=bad)
     with pytest.raises(TypeError, match=r"logger=\.\.\.\) must be a jaxmetrics.Logger"):
         jm.wrap_step(_step, metrics, logger=[jm.MemoryWriter()])
     with pytest.raises(TypeError, match=r"axis_name=\.\.\.\) must be a str"):
@@ -304,3 +307,31 @@ def test_envs_reset_under_an_unnamed_pmap_still_merge_exactly():
             jax.pmap(run, axis_name="i", devices=cpus)(carry, split(rewards), split(dones))
         )
     _check(memory.records, _reference(rewards, dones, PERIOD_CALLS), NUM_ENVS)
+
+
+def test_misuse_found_at_trace_time_is_named_with_its_fix():
+    metrics = _spec()
+    rewards, dones = _episodes(0, NUM_ENVS, 4)
+    # A period past the int32 clock: refused at trace time, naming the largest period.
+    with jm.Logger(metrics, [jm.MemoryWriter()]) as logger:
+        wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=2**40)
+        with pytest.raises(
+            ValueError, match=r"report_every=1099511627776 is .* at most 17179869176"
+        ):
+            jax.jit(_run_scan(wrapped, rewards, dones, NUM_ENVS))(rewards, dones)
+    # A Logger of 2 runs and a wrapper that is not vmapped: not all records to run 0.
+    memory = [jm.MemoryWriter(), jm.MemoryWriter()]
+    logger = jm.Logger(metrics, lambda run: [memory[run]], runs=2)
+    wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=NUM_ENVS)
+    jax.jit(_run_scan(wrapped, rewards, dones, NUM_ENVS))(rewards, dones)
+    with pytest.raises(jm.WriterError, match=r"runs=2, but the wrapper is not vmapped"):
+        logger.close()
+    assert memory[0].records == memory[1].records == []
+    # A closed Logger: named as the wrapper's, when built and when traced after a close.
+    logger = jm.Logger(metrics, [jm.MemoryWriter()])
+    wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=NUM_ENVS)
+    logger.close()
+    with pytest.raises(RuntimeError, match=r"wrap_step\(logger=\.\.\.\): the Logger is closed"):
+        jm.wrap_step(_step, metrics, logger=logger)
+    with pytest.raises(RuntimeError, match=r"Logger given to a reporting wrapper .* is closed"):
+        jax.jit(_run_scan(wrapped, rewards, dones, NUM_ENVS))(rewards, dones)
