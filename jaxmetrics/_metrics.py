@@ -127,7 +127,9 @@ class Metrics:
             state on the default device (right for a single device).
 
         Raises:
-          ValueError: if `num_envs` does not split evenly into the shards.
+          ValueError: if `num_envs` does not split evenly into the shards, or for a
+            state of several shards whose spec has an EMA coefficient below 3.385e-4,
+            which merging the shards could not serve exactly (see `merge`).
           TypeError: for a sharding other than a `NamedSharding` or a single device.
         """
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)):
@@ -138,6 +140,8 @@ class Metrics:
         shards = shard_count(sharding, num_envs)
         if num_envs == 0 and sharding is None:
             shards = 0  # no shard at all: concatenating it in `merge` changes nothing
+        if shards > 1 and self._rows.ep_plan is not None:
+            _stream.check_mergeable(self._rows.ep_plan)  # refused here, not at the first flush
         if not isinstance(sharding, jax.sharding.NamedSharding):
             state = _fresh.fresh(self._rows, num_envs, shards)
             return state if sharding is None else jax.device_put(state, sharding)

@@ -31,6 +31,7 @@ from ._fold import batch_two_pass as batch_two_pass
 from ._fold import counts_width as counts_width
 from ._hists import slot_counts_compare as slot_counts_compare
 from ._hists import slot_counts_scatter as slot_counts_scatter
+from ._merge import check_mergeable as check_mergeable
 from ._merge import combine as combine
 from ._merge import merge as merge
 from ._merge import pad_ema_history as pad_ema_history

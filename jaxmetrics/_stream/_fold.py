@@ -18,6 +18,7 @@ import numpy as np
 
 from .. import _count, _sketch
 from .._count import Count
+from .._numerics import log2_keep
 from .._sharding import gathered
 from . import _hists, _kernel, _reached, _segments, _update
 from ._segments import SegmentPlan
@@ -359,7 +360,7 @@ def ema_weights(c, after, seeding, count, dt):
     """The closed-form EMA weights of values with `after` later arrivals: c(1-c)^after,
     except the first of `count` values where `seeding`, which seeds the EMA and weighs
     (1-c)^(count-1)."""
-    decay = jnp.power(1 - c, after.astype(dt))
+    decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(dt) * log2_keep(c)))
     return jnp.where(seeding & (after == count - 1), decay, c * decay)
 
 

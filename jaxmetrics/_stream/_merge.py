@@ -4,11 +4,13 @@ import jax
 import jax.numpy as jnp
 
 from .. import _count
-from .._numerics import kahan_add
+from .._numerics import kahan_add, log2_keep
 from .._sharding import gathered
 from ._fold import ema_weights
 from ._state import (
     INT32_MAX,
+    MAX_EMA_HISTORY,
+    MIN_MERGED_EMA,
     UINT32_MAX,
     Ring,
     StreamPlan,
@@ -47,9 +49,32 @@ def _newest(vals, age, valid, size: int, steps: jax.Array) -> Ring:
     )
 
 
+def check_mergeable(plan: StreamPlan) -> None:
+    """Refuses, when a merge is traced, the EMA coefficients it cannot merge exactly (below
+    `MIN_MERGED_EMA`): the part older than the kept history would be an estimate weighing
+    up to (1-c)^65536 (52% for c = 1e-5)."""
+    small = [
+        (plan.rows[plan.ema_rows[j]].name, g.coeff)
+        for g in plan.ema_groups
+        if g.coeff < MIN_MERGED_EMA
+        for j in g.rows
+    ]
+    if small:
+        name, c = small[0]
+        raise ValueError(
+            f"metric {name!r}: ema({c:g}) cannot be merged across devices or workers (a "
+            "sharded state, Brax's pmap over several devices, Metrics.merge): each keeps its "
+            f"newest {MAX_EMA_HISTORY} values, and below a coefficient of "
+            f"{MIN_MERGED_EMA:.4g} the older EMA they leave out weighs more than 2^-32 "
+            f"((1-c)^{MAX_EMA_HISTORY} = {(1 - c) ** MAX_EMA_HISTORY:.3g}). Use an EMA "
+            f"coefficient of at least {MIN_MERGED_EMA:.4g}, or keep this EMA on one device."
+        )
+
+
 def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
     """EMA of both workers' values in arrival order (see `EmaGroup`), relative to `a`'s
     offset (`b`'s where `a` has no value)."""
+    check_mergeable(plan)
     dt = plan.dtype
     off = jnp.where(a.ema_n == 0, b.ema_off, a.ema_off)
     wsum = a.ema_w + b.ema_w
@@ -90,7 +115,8 @@ def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
         w = ema_weights(c, p, exact[:, None], folded, dt)
         dev = vals - off[rows][:, None]
         new = jnp.sum(jnp.where(valid & (p < folded), w * dev, 0), axis=1)
-        keep = jnp.where(exact, 0, jnp.power(1 - c, folded[:, 0].astype(dt)) * tail[rows])
+        decay = jnp.where(folded == 0, 1.0, jnp.exp2(folded.astype(dt) * log2_keep(c)))[:, 0]
+        keep = jnp.where(exact, 0, decay * tail[rows])
         parts.append((rows, jnp.where(held, keep + new, tail[rows])))
         sequential = sequential.at[rows].set(held)
         rings.append(_newest(vals, age, valid, size, sa))

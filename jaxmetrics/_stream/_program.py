@@ -12,6 +12,7 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
+from .._numerics import log2_keep
 from . import _reached, _update
 from ._chunks import blocking, chunking, masked_in_around, reads_counts
 from ._hists import add_in_kernel, count_in_kernel, count_pair_in_kernel
@@ -375,7 +376,7 @@ def program(
         row_total = total if later is None else earlier + total + later
         k = jnp.maximum(total, 1).astype(jnp.float32)
         if ema:
-            log_keep = jnp.log2(1 - coeff)
+            log_keep = log2_keep(coeff)
             # The offset and seeding are worked out here from the state's own fields:
             # computed outside, XLA put them in the per-row update's kernel, which then
             # had to run before this one and copied seven fields to keep their old values.

@@ -80,8 +80,8 @@ class StreamState(NamedTuple):
     nonfinite: Count  # [R] uint32 pair: non-finite values left out in this period
     # EMA fields have every row (0 where a row has no EMA), so that the whole update of
     # the per-row statistics after a batch is one elementwise pass over [R] arrays.
-    ema: jax.Array  # [R] float: the EMA minus `ema_off`
-    ema_off: jax.Array  # [R] float: offset fixed when the EMA is seeded
+    ema: jax.Array  # [R] float: the EMA minus `ema_off`: its trailing part
+    ema_off: jax.Array  # [R] float: the EMA's leading part (the EMA is ema_off + ema)
     ema_w: jax.Array  # [R] float: 0 unseeded, else number of merged seeded workers
     ema_n: jax.Array  # [R] int32: values the EMA has seen (saturates at 2^31 - 1)
     ema_rings: tuple[Ring, ...]  # one per EmaGroup: the newest values, for exact merges
@@ -127,6 +127,10 @@ class EmaGroup:
 
 
 MAX_EMA_HISTORY = 1 << 16
+MIN_MERGED_EMA = -math.expm1(-32 * math.log(2) / MAX_EMA_HISTORY)
+"""The smallest EMA coefficient whose merge is exact to 2^-32 of the range: below it the
+`MAX_EMA_HISTORY` newest values kept per worker leave the older EMA a weight above 2^-32
+(about 3.385e-4)."""
 
 
 @dataclasses.dataclass(frozen=True)

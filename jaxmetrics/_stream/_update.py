@@ -23,7 +23,7 @@ from jax.experimental import pallas as pl
 
 from .. import _count
 from .._count import Count
-from .._numerics import kahan_add
+from .._numerics import kahan_add, log2_keep, two_sum
 from ._state import INT32_MAX, StreamState
 
 
@@ -169,8 +169,13 @@ def _ema_update(f: Fields, rows: Rows, k, shift, mean, new):
     off = jnp.where(seeded, f.ema_off, mean)
     # (1-c)^k as the fused kernel weighs values (`exp2`; 0^0 = 1 for c = 1, as
     # jnp.power gives): a power is a long call on the update's path in that kernel.
-    keep = jnp.where(k == 0, 1.0, jnp.exp2(k.astype(dt) * jnp.log2(1 - c_all)))
+    keep = jnp.where(k == 0, 1.0, jnp.exp2(k.astype(dt) * log2_keep(c_all)))
     ema = jnp.where(seeded, keep * f.ema, 0) + new + (base - off)
+    # The EMA is `off + ema` as an unevaluated sum, renormalized after every batch (`ema`
+    # the rounding error of `off`): an offset fixed at seeding left the EMA of values that
+    # moved far from it (a return curve that ramps) with the float32 resolution of that
+    # distance, and updates below it were lost.
+    off, ema = two_sum(off, ema)
     some = rows.is_ema & (k > 0)
     ema = jnp.where(some, ema, f.ema)
     ema_off = jnp.where(some, off, f.ema_off)

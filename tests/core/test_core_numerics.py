@@ -280,3 +280,70 @@ def test_1e8_drifting_values_4096_a_step():
         1e4 + 10.0 * (rng.standard_normal(total, np.float32) + np.linspace(0, 3, total))
     ).astype(np.float32)
     _check_moments(values, _moments_of(values, 4096, total))
+
+
+def _ema_of(x: np.ndarray, c: float, per_step: int) -> float:
+    metrics = jm.Metrics(logged={"x": jm.Logged(stats=(jm.ema(c),))})
+
+    @jax.jit
+    def feed(state, block):
+        return jax.lax.scan(lambda s, v: (metrics.log(s, {"x": v}), None), state, block)[0]
+
+    state = feed(metrics.init(0), jnp.asarray(x, jnp.float32).reshape(-1, per_step))
+    return metrics.to_host(metrics.compute(state))["Train/x/ema"]
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    c=st.sampled_from([1e-6, 3e-6, 1e-5, 3e-5, 1e-4]),
+    per_step=st.sampled_from([1, 100]),
+)
+def test_ema_coefficient_is_not_rounded_through_float32_one_minus_c(c, per_step):
+    # Values 0 (the seed), then 1: the EMA is 1 - (1-c)^n, so its effective coefficient
+    # -log1p(-ema)/n shows how 1 - c was rounded (1e-6 acted as 1.013e-6, or 0.954e-6).
+    n = 20_000
+    x = np.r_[np.zeros(per_step), np.ones(n)].astype(np.float32)
+    got = _ema_of(x, c, per_step)
+    # Within what 20,000 float32 updates of a value in (0, 1) round to (about 1e-5).
+    assert -np.log1p(-got) / n == pytest.approx(c, rel=1e-4)
+    assert got == pytest.approx(_ema_reference(x, c), abs=2e-5)
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    shape=st.sampled_from(["ramp", "step"]),
+    size=st.sampled_from([1e3, 1e5, 1e6]),
+    c=st.sampled_from([1e-4, 1e-3, 1e-2]),
+    seed=st.integers(0, 2**16),
+)
+def test_ema_follows_values_that_move_far_from_its_seed(shape, size, c, seed):
+    # Returns ramp during training: an offset fixed at seeding left the EMA with the
+    # float32 resolution of the distance travelled (0 -> 1e5 ramp, c=1e-4: 16 off; 0
+    # then 1e6 + N(0, 1): 168 off). Against RLlib's float64 rule, within 1e-2 of the
+    # noise's sd plus float32's resolution of the values.
+    rng = np.random.default_rng(seed)
+    n, sd = 20_000, size / 1e3
+    if shape == "ramp":
+        x = np.linspace(0.0, size, n) + rng.normal(0.0, sd, n)
+    else:
+        x = np.r_[0.0, size + rng.normal(0.0, sd, n - 1)]
+    x = x.astype(np.float32)
+    got, want = _ema_of(x, c, 100), _ema_reference(x, c)
+    assert abs(got - want) <= 1e-2 * sd + 2 * np.spacing(np.float32(size)), (got, want)
+
+
+def test_ema_merge_refuses_coefficients_it_cannot_serve_exactly():
+    # Two workers' EMAs were merged with the part older than their kept history (65,536
+    # values each) estimated and still weighing (1-c)^65536: c = 1e-5 gave 50.16 for
+    # 40.52. Such coefficients are refused where states are merged, naming the bound.
+    small = jm.Metrics(terms={"r": jm.Term(lambda x: x, stats=(jm.ema(1e-5),))})
+    merged = small.merge(small.init(2), small.init(2))  # the shards side by side
+    with pytest.raises(ValueError, match=r"metric 'r': ema\(1e-05\) cannot be merged .*0.0003384"):
+        small.compute(merged)  # where they meet
+    mesh = jax.make_mesh((2,), ("env",), devices=jax.devices("cpu")[:2])
+    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("env"))
+    with pytest.raises(ValueError, match=r"cannot be merged across devices"):
+        small.init(4, sharding=sharding)
+    small.init(4)  # one device: no merge, any coefficient
+    ok = jm.Metrics(terms={"r": jm.Term(lambda x: x, stats=(jm.ema(3.4e-4),))})
+    ok.compute(ok.merge(ok.init(2), ok.init(2)))
