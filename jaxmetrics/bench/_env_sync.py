@@ -169,7 +169,10 @@ def _ablation(reporter: Any, kind: str) -> Any:
             if kind == "cond_pure":
                 state = jax.lax.cond(when, self.metrics.reset_period, lambda s: s, state)
             elif kind == "cond_callback":
-                state = self.logger.emit_from_wrapper(state, self._step(state), when)
+                calls = self.period_calls(num_envs, steps_per_call)
+                state = self.logger.emit_from_wrapper(
+                    state, self._step(state), when, calls * num_envs * steps_per_call
+                )
             elif kind == "where":
                 new = self.metrics.reset_period(state)
                 state = jax.tree.map(lambda n, o: jnp.where(when, n, o), new, state)
