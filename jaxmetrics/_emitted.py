@@ -125,6 +125,7 @@ class EmitReceiver:
         # io_callback hands over jax Arrays: one copy to numpy here, not a device
         # dispatch per statistic when the writer thread unpacks them.
         if from_wrapper and np.ndim(when) == 0 and self._runs > 1:
+            self.calls += 1
             # A wrapper reports under vmap with one run per seed; unvmapped, every record
             # would go to run 0.
             self._reports.error(

@@ -221,6 +221,7 @@ class Logger(AbstractContextManager):
             compute, metrics.reset_period, send, runs_by_position=self.runs
         )
         self._history_id = _history.layout_id(metrics.config_id, self.include_running)
+        self._wrapper_periods: set[int] = set()  # of the reporting wrappers traced
         self._timer_prefix = timer_prefix
         self._timer_tags: set[str] = set()
         self._timers = Timers()
@@ -366,6 +367,15 @@ class Logger(AbstractContextManager):
             return
         jax.effects_barrier()  # emits still in flight land before the door closes
         self._channel.close()
+        if self._wrapper_periods and self._emitted.calls == 0:
+            periods = " or ".join(f"{p:,}" for p in sorted(self._wrapper_periods))
+            self._reports.notice(
+                f"a reporting wrapper was traced but wrote no record: it reports every "
+                f"{periods} env steps over all envs (report_every, rounded up to whole steps "
+                "of the batch; by default 100 steps of the batch), so a training that ran "
+                "ended before the first period did, and its episodes were not reported. "
+                "Pass a report_every of at most the training's env steps."
+            )
         if not self._thread.stop(self._runs.drain_summary, self._runs.close_writers):
             self._thread.wait_stopped("close")
             return
@@ -422,17 +432,22 @@ class Logger(AbstractContextManager):
         step, run, when = scalar_args("Logger.emit", step=step, run=run, when=when)
         return self._emit(state, step, when, run)
 
-    def emit_from_wrapper(self, state: MetricsState, step: Count, when: jax.Array) -> MetricsState:
+    def emit_from_wrapper(
+        self, state: MetricsState, step: Count, when: jax.Array, period: int
+    ) -> MetricsState:
         """The reporting wrappers' in-graph emit (`_reporting.ReportSink`), not for user
         code: the step is an exact `Count` (env steps pass 2^31 in long runs), and under
-        `vmap` each seed's position on the vmapped axis is its run."""
+        `vmap` each seed's position on the vmapped axis is its run. `period` (env steps)
+        is kept to say, at `close`, why no record came if none did."""
         if self._thread.closed:
             raise RuntimeError(
                 "the Logger given to a reporting wrapper (jmb.wrap, jmp.wrap, "
                 "jm.wrap_step(..., logger=)) is closed; give the wrapper an open Logger "
                 "(create a new one for each training)."
             )
-        return self._wrapper_emit(state, step, when, jnp.zeros((), jnp.int32))
+        state = self._wrapper_emit(state, step, when, jnp.zeros((), jnp.int32))
+        self._wrapper_periods.add(int(period))  # traced: it reports unless never run
+        return state
 
     # ------------------------------------------------------------------ report history
 

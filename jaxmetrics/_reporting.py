@@ -31,8 +31,11 @@ from ._validate import is_int
 class ReportSink(Protocol):
     """What a reporting wrapper hands its reports to (a `jaxmetrics.Logger`)."""
 
-    def emit_from_wrapper(self, state: MetricsState, step: Count, when: jax.Array) -> MetricsState:
-        """In-graph: reports `state` at `step` where `when`, and resets the period there."""
+    def emit_from_wrapper(
+        self, state: MetricsState, step: Count, when: jax.Array, period: int
+    ) -> MetricsState:
+        """In-graph: reports `state` at `step` where `when`, and resets the period there;
+        `period` is the wrapper's period in env steps over all envs and devices."""
         ...
 
 
@@ -136,19 +139,22 @@ class Reporter:
         """After one step of the batch: `(state, clock)`, reported and reset where the
         period ends (in-graph; no host traffic on the other steps)."""
         clock = jnp.asarray(clock, jnp.int32) + 1
-        when = clock >= self.period_calls(num_envs, steps_per_call)
+        calls = self.period_calls(num_envs, steps_per_call)
+        when = clock >= calls
         clock = jnp.where(when, jnp.zeros_like(clock), clock)
-        if (axis_size(self.axis_name) or 1) == 1:
+        devices = axis_size(self.axis_name) or 1
+        period = calls * num_envs * steps_per_call * devices
+        if devices == 1:
             # One device (Brax's trainers pmap over one): nothing to gather, and no
             # collective in the period-end branch.
-            return self.logger.emit_from_wrapper(state, self._step(state), when), clock
+            return self.logger.emit_from_wrapper(state, self._step(state), when, period), clock
         name = self.axis_name
 
         def report() -> None:
             merged = self._gathered(state, name)
 
             def write() -> None:
-                self.logger.emit_from_wrapper(merged, self._step(merged), when)
+                self.logger.emit_from_wrapper(merged, self._step(merged), when, period)
 
             jax.lax.cond(jax.lax.axis_index(name) == 0, write, lambda: None)
 

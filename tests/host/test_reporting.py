@@ -178,14 +178,16 @@ def test_pmapped_envs_report_one_run_over_all_devices():
 
 def test_a_pmapped_step_folds_with_no_collective_outside_the_report():
     metrics = _spec()
-    with jm.Logger(metrics, [jm.MemoryWriter()]) as logger:
-        wrapped = jm.wrap_step(_step, metrics, logger=logger, axis_name="i")
-        rewards, dones = _episodes(4, 4, 3)
-        run = jax.pmap(
-            _run_scan(wrapped, None, None, 2), axis_name="i", devices=jax.devices("cpu")[:2]
-        )
-        split = lambda x: np.stack(np.split(x, 2, axis=1))  # noqa: E731
-        jaxpr = jax.make_jaxpr(run)(split(rewards), split(dones)).jaxpr
+    logger = jm.Logger(metrics, [jm.MemoryWriter()])
+    wrapped = jm.wrap_step(_step, metrics, logger=logger, axis_name="i")
+    rewards, dones = _episodes(4, 4, 3)
+    run = jax.pmap(
+        _run_scan(wrapped, None, None, 2), axis_name="i", devices=jax.devices("cpu")[:2]
+    )
+    split = lambda x: np.stack(np.split(x, 2, axis=1))  # noqa: E731
+    jaxpr = jax.make_jaxpr(run)(split(rewards), split(dones)).jaxpr
+    with pytest.warns(RuntimeWarning, match="wrote no record"):  # traced, never run
+        logger.close()
     found = list(_collectives(jaxpr, ()))
     assert found, "the report gathers the devices' statistics"
     # Each collective sits under a cond (the period end) inside the step loop.
@@ -259,6 +261,9 @@ def test_seeds_vmapped_against_a_logger_of_other_runs_are_refused_at_trace_time(
         nested = jax.vmap(jax.vmap(_run_scan(wrapped, None, None, 2)))
         with pytest.raises(ValueError, match="nested vmaps"):
             jax.jit(nested)(np.stack([stacked[0][:2]] * 2), np.stack([stacked[1][:2]] * 2))
+        # Traced, refused, never run: no record, and close says so.
+        with pytest.warns(RuntimeWarning, match="traced but wrote no record"):
+            logger.close()
 
 
 def test_a_trainer_reset_of_the_envs_continues_the_steps_and_says_so():
@@ -335,3 +340,17 @@ def test_misuse_found_at_trace_time_is_named_with_its_fix():
         jm.wrap_step(_step, metrics, logger=logger)
     with pytest.raises(RuntimeError, match=r"Logger given to a reporting wrapper .* is closed"):
         jax.jit(_run_scan(wrapped, rewards, dones, NUM_ENVS))(rewards, dones)
+
+
+def test_a_wrapper_that_never_reported_says_so_at_close_naming_its_period():
+    # ppo.train with report_every past num_timesteps wrote 0 records and close() said
+    # nothing.
+    metrics = _spec()
+    rewards, dones = _episodes(0, NUM_ENVS, 4)
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [memory])
+    wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=100 * NUM_ENVS)
+    jax.jit(_run_scan(wrapped, rewards, dones, NUM_ENVS))(rewards, dones)
+    with pytest.warns(RuntimeWarning, match=r"wrote no record: it reports every 800 env steps"):
+        logger.close()
+    assert memory.records == []
