@@ -181,9 +181,7 @@ def test_a_pmapped_step_folds_with_no_collective_outside_the_report():
     logger = jm.Logger(metrics, [jm.MemoryWriter()])
     wrapped = jm.wrap_step(_step, metrics, logger=logger, axis_name="i")
     rewards, dones = _episodes(4, 4, 3)
-    run = jax.pmap(
-        _run_scan(wrapped, None, None, 2), axis_name="i", devices=jax.devices("cpu")[:2]
-    )
+    run = jax.pmap(_run_scan(wrapped, None, None, 2), axis_name="i", devices=jax.devices("cpu")[:2])
     split = lambda x: np.stack(np.split(x, 2, axis=1))  # noqa: E731
     jaxpr = jax.make_jaxpr(run)(split(rewards), split(dones)).jaxpr
     with pytest.warns(RuntimeWarning, match="wrote no record"):  # traced, never run
