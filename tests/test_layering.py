@@ -43,6 +43,8 @@ CORE = {
 # The wrappers that report by themselves hand reports to the Logger: host layer.
 HOST = {
     "_call_checks",
+    "_channel",
+    "_cuda",
     "_close_at_exit",
     "_emit",
     "_emitted",
@@ -52,6 +54,7 @@ HOST = {
     "_programs",
     "_report",
     "_reporting",
+    "_ring",
     "_runs",
     "_seeds",
     "_seeds_run",

@@ -554,7 +554,9 @@ def test_env_sync_variants_report_only_where_they_call_back():
     with jmp.default_promotion():  # the suite runs strict (conftest); Playground does not
         rows = _env_sync.measure("jax", ["report", "cond_pure"], 4, 3, 1, profile=False)
     assert [(r["variant"], r["records"]) for r in rows] == [("report", 2), ("cond_pure", 0)]
-    assert rows[0]["hlo_summary"]["conditional"] > rows[1]["hlo_summary"]["conditional"] >= 1
+    # On one device the report is the period end's conditional alone (no nested gather),
+    # as many as the pure cond has.
+    assert rows[0]["hlo_summary"]["conditional"] == rows[1]["hlo_summary"]["conditional"] >= 1
     assert rows[0]["hlo_summary"]["custom-call:xla_ffi_python_cpu_callback"] == 1
     with pytest.raises(ValueError, match="bad case"):
         _env_sync.parse_case("warp;report,nope;")
