@@ -57,8 +57,6 @@ def tables(doc: dict[str, Any]) -> list[Table]:
         return [_graph_threshold_table(doc)]
     if doc.get("benchmark") == "env_sync":
         return [_env_sync_table(doc)]
-    if doc.get("benchmark") == "graph_callback":
-        return [_graph_callback_table(doc)]
     if doc.get("benchmark") == "in_trainer":
         return [_in_trainer.table(doc)]
     return [Table.from_dict(n, d) for n, d in doc["scenarios"].items() if n != TARGETS]
@@ -185,58 +183,6 @@ def _env_sync_table(doc: dict[str, Any]) -> Table:
     return t
 
 
-def _graph_callback_table(doc: dict[str, Any]) -> Table:
-    """Per variant: us per step against `cond_pure`, whether the host got every report
-    right, and what one profiled call ran per step."""
-    n = doc["sizes"]
-    t = Table(
-        "graph_callback",
-        f"A {n['steps']}-step scan of {n['kernels']} small kernels over {n['envs']:,} floats, "
-        f"a report every {n['period']} steps, us/step",
-        [
-            "variant",
-            "us/step",
-            "vs cond_pure us",
-            "reports right",
-            "lost",
-            "graph launches",
-            "D2H copies on the stream",
-            "handler calls",
-        ],  # fmt: skip
-        notes=[
-            "reports right: every call delivered exactly its reports, in order (`seq` and "
-            "the step exact, the floats equal to a plain scan's); lost: reports the poll "
-            "thread missed over all calls; per step of the profiled call: graph launches "
-            "from the host, and the device-to-host copies on XLA's stream (a conditional run "
-            "from the host copies its predicate there each step; copies inside a "
-            "conditional's body are reported on streams of their own and not counted); "
-            "handler calls: how often XLA called the FFI handler in the process (a command "
-            "buffer records it once per trace).",
-        ],
-    )
-    rows = {r["variant"]: r for r in doc["rows"]}
-    base = rows.get("cond_pure")
-    for v, r in rows.items():
-        if "error" in r:
-            why = [ln for ln in r["error"].splitlines() if "Error" in ln]
-            t.add(v, "failed: " + (why[-1].strip() if why else r["error"][-200:]), *[""] * 6)
-            continue
-        tc = r["trace_counts"]
-        calls = r["handler_calls"].get("cuda:stage3", "")
-        us = r["us_per_step"]
-        t.add(
-            v,
-            round(us, 1),
-            "" if base is None or v == "cond_pure" else round(us - base["us_per_step"], 1),
-            {True: "yes", False: "no"}.get(r.get("delivered_right"), ""),
-            r.get("lost", ""),
-            tc["graph_launches_per_step"],
-            tc["memcpy_d2h_per_step"],
-            calls,
-        )  # fmt: skip
-    return t
-
-
 def _versions(v: Mapping[str, Any]) -> str:
     names = ("jax", "jaxlib", "brax", "mujoco-mjx", "mujoco_mjx", "playground", "warp_lang")
     return ", ".join(f"{n.replace('_', '-')} {v[n]}" for n in names if v.get(n))
@@ -256,12 +202,6 @@ def source(name: str, doc: dict[str, Any]) -> str:
         return (
             f"`{name}`: {doc['device']}; jax {doc['jax']}; median of {n['repeats']} calls "
             f"of a {n['steps']}-step scan."
-        )
-    if doc.get("benchmark") == "graph_callback":
-        e, n = doc["environment"], doc["sizes"]
-        return (
-            f"`{name}`: {e['device']}, tree `{doc['commit']}`; jax {e['jax']}; median of "
-            f"{n['repeats']} calls per variant, each variant in a fresh process."
         )
     if doc.get("benchmark") == "env_sync":
         e, n = doc["environment"], doc["sizes"]
