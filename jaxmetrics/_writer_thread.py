@@ -139,14 +139,16 @@ class WriterThread:
 
     def _call_writer(self, what: str, failed: str, fn: Callable[..., None], *args: Any) -> None:
         """A writer call, timed for `_wait_until` (`what` names it in a timeout); a failure
-        is kept for the caller's thread, so that the other writers are still called."""
+        is kept for the caller's thread, so that the other writers are still called. That
+        includes a `SystemExit` or `KeyboardInterrupt` a writer raises: on this thread it
+        stops nothing but the record, and it is named like any failure."""
         try:
             self._busy = (what, time.monotonic())
             try:
                 fn(*args)
             finally:
                 self._busy = None
-        except Exception as e:  # noqa: BLE001 (handed to the caller's thread)
+        except BaseException as e:  # noqa: BLE001 (handed to the caller's thread)
             err = RuntimeError(f"{failed}: {e!r}")
             err.__cause__ = e
             self._reports.error(err)

@@ -409,3 +409,36 @@ def test_steps_out_of_int64_or_going_back_are_refused():
         with pytest.warns(RuntimeWarning, match=r"run 0: step 3 written after step 10"):
             logger.wait()
     assert [r.step for r in memory.records] == [10, 10, 3]
+
+
+class _Exiting:
+    """A writer that raises `exc` on every write (a library calling sys.exit, Ctrl-C)."""
+
+    def __init__(self, exc):
+        self.exc = exc
+
+    def __repr__(self):
+        return "_Exiting()"
+
+    def open(self, tags):
+        pass
+
+    def write(self, record):
+        raise self.exc
+
+    def close(self):
+        pass
+
+
+@pytest.mark.parametrize("exc", [SystemExit(7), KeyboardInterrupt()])
+def test_a_writer_raising_systemexit_is_named_and_the_writers_after_it_still_write(exc):
+    # It was listed as "7" (or an empty line) with no writer, run or step, and the writers
+    # after it skipped that record.
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(METRICS, [_Exiting(exc), memory])
+    logger.flush(_state(1.0), 3)
+    with pytest.raises(jm.WriterError) as error:
+        logger.close()
+    assert [r.step for r in memory.records] == [3]
+    (failure,) = error.value.failures
+    assert f"writer _Exiting() of run 0 failed at step 3: {exc!r}" in str(failure)
