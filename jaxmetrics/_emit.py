@@ -107,9 +107,15 @@ class InGraphEmit:
                 "one vmapped axis of seeds; vmap over a single (flattened) seed axis."
             )
         if axis_size != runs:
+            nested = (
+                f", or, if {axis_size} is the inner of nested vmaps over {runs} seeds in all, "
+                f"vmap over one flattened axis of {runs} seeds"
+                if runs % axis_size == 0 and runs > axis_size
+                else ""
+            )
             raise ValueError(
                 f"a reporting wrapper is vmapped over {axis_size} seeds, but its Logger has "
                 f"runs={runs}: create the Logger with runs={axis_size} (seed i of the vmapped "
-                "axis reports to run i)."
+                f"axis reports to run i){nested}."
             )
         return jnp.arange(axis_size, dtype=jnp.int32)

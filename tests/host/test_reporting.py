@@ -352,3 +352,20 @@ def test_a_wrapper_that_never_reported_says_so_at_close_naming_its_period():
     with pytest.warns(RuntimeWarning, match=r"wrote no record: it reports every 800 env steps"):
         logger.close()
     assert memory.records == []
+
+
+def test_nested_vmaps_over_all_of_a_logger_s_seeds_are_told_to_flatten():
+    # vmap(2) of vmap(3) against runs=6 was told "create the Logger with runs=3".
+    metrics = _spec()
+    rewards, dones = _episodes(6, 2, 4)
+    with jm.Logger(metrics, lambda run: [jm.MemoryWriter()], runs=6) as logger:
+        wrapped = jm.wrap_step(_step, metrics, logger=logger)
+        nested = jax.vmap(jax.vmap(_run_scan(wrapped, None, None, 2)))
+        stacked = (np.stack([np.stack([rewards] * 3)] * 2), np.stack([np.stack([dones] * 3)] * 2))
+        with pytest.raises(
+            ValueError,
+            match=r"runs=6: .*inner of nested vmaps over 6 seeds.*one flattened axis of 6",
+        ):
+            jax.jit(nested)(*stacked)
+        with pytest.warns(RuntimeWarning, match="traced but wrote no record"):
+            logger.close()
