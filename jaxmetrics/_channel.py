@@ -34,7 +34,7 @@ from jax.experimental import io_callback
 from . import _ring
 
 TESTED_JAX = ((0, 10), (0, 11))
-"""JAX minor versions the ring channel is tested on (0.10.2 on the CPU, 0.11.2 on H100s)."""
+"""JAX minor versions the ring channel is tested on (0.10.2 on the CPU, 0.11.2 on NVIDIA GPUs)."""
 MIN_CUDA_DRIVER = 12030
 """CUDA 12.3: the first with conditional nodes in CUDA graphs, which XLA's `lax.cond`
 needs to stay inside a graph."""
