@@ -276,6 +276,8 @@ class Logger(AbstractContextManager):
             earlier flush.
           WriterError: writers failed since the last check.
           WriterTimeoutError: the writer thread is stuck in a writer call.
+          ReportsLostError: in-graph reports were lost since the last check (the host
+            fell more than `report_slots` reports behind the device).
           RuntimeError: the logger is closed.
           When it raises, the flush has done nothing (see the class docstring).
         """
