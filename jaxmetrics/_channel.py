@@ -32,6 +32,7 @@ import numpy as np
 from jax.experimental import io_callback
 
 from . import _ring
+from ._validate import is_int
 
 TESTED_JAX = ((0, 10), (0, 11))
 """JAX minor versions the ring channel is tested on (0.10.2 on the CPU, 0.11.2 on NVIDIA GPUs)."""
@@ -119,9 +120,7 @@ class _Leaf(NamedTuple):
         return _Leaf(tuple(x.shape), dtype, size * (2 if dtype.itemsize == 8 else 1))
 
     def encode(self, x: jax.Array) -> jax.Array:
-        if self.dtype.itemsize == 4 and self.dtype != np.bool_:
-            return jax.lax.bitcast_convert_type(x, jnp.uint32).reshape(-1)
-        if self.dtype.itemsize == 8:
+        if self.dtype.itemsize in (4, 8) and self.dtype != np.bool_:
             return jax.lax.bitcast_convert_type(x, jnp.uint32).reshape(-1)
         wide = jnp.float32 if jnp.issubdtype(x.dtype, jnp.floating) else jnp.int32
         return jax.lax.bitcast_convert_type(x.astype(wide), jnp.uint32).reshape(-1)
@@ -286,7 +285,7 @@ def check_settings(requested: Any, slots: Any) -> None:
         raise ValueError(
             f"Logger(report_channel=...) must be one of {CHANNELS}, got {requested!r}."
         )
-    if isinstance(slots, bool) or not isinstance(slots, int) or not 1 <= slots <= 2**16:
+    if not is_int(slots) or not 1 <= slots <= 2**16:
         raise ValueError(f"Logger(report_slots=...) must be an int in [1, 65536], got {slots!r}.")
 
 

@@ -118,18 +118,21 @@ class Reporter:
             return self.metrics.init(num_envs)
         return _fresh.fresh(self.metrics._rows, num_envs, 1, ema_history=True)
 
+    def batch_env_steps(self, num_envs: int, steps_per_call: int) -> int:
+        """Env steps over all envs and devices in one step of the batch (trace time)."""
+        return num_envs * steps_per_call * (axis_size(self.axis_name) or 1)
+
     def period_calls(self, num_envs: int, steps_per_call: int) -> int:
         """Steps of the batch per period: static, from the batch at trace time."""
-        devices = axis_size(self.axis_name) or 1
         if self.report_every is None:
             return DEFAULT_PERIOD_CALLS
-        calls = max(1, math.ceil(self.report_every / (num_envs * steps_per_call * devices)))
+        batch = self.batch_env_steps(num_envs, steps_per_call)
+        calls = max(1, math.ceil(self.report_every / batch))
         if calls > 2**31 - 1:  # the clock is an int32
             raise ValueError(
                 f"report_every={self.report_every} is {calls} steps of this batch of "
-                f"{num_envs * steps_per_call * devices} env steps, past the period clock's "
-                f"2^31 - 1; give a report_every of at most "
-                f"{(2**31 - 1) * num_envs * steps_per_call * devices}."
+                f"{batch} env steps, past the period clock's 2^31 - 1; give a report_every "
+                f"of at most {(2**31 - 1) * batch}."
             )
         return calls
 
@@ -142,9 +145,8 @@ class Reporter:
         calls = self.period_calls(num_envs, steps_per_call)
         when = clock >= calls
         clock = jnp.where(when, jnp.zeros_like(clock), clock)
-        devices = axis_size(self.axis_name) or 1
-        period = calls * num_envs * steps_per_call * devices
-        if devices == 1:
+        period = calls * self.batch_env_steps(num_envs, steps_per_call)
+        if (axis_size(self.axis_name) or 1) == 1:
             # One device (Brax's trainers pmap over one): nothing to gather, and no
             # collective in the period-end branch.
             return self.logger.emit_from_wrapper(state, self._step(state), when, period), clock

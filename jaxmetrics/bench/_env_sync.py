@@ -169,10 +169,10 @@ def _ablation(reporter: Any, kind: str) -> Any:
             if kind == "cond_pure":
                 state = jax.lax.cond(when, self.metrics.reset_period, lambda s: s, state)
             elif kind == "cond_callback":
-                calls = self.period_calls(num_envs, steps_per_call)
-                state = self.logger.emit_from_wrapper(
-                    state, self._step(state), when, calls * num_envs * steps_per_call
+                period = self.period_calls(num_envs, steps_per_call) * self.batch_env_steps(
+                    num_envs, steps_per_call
                 )
+                state = self.logger.emit_from_wrapper(state, self._step(state), when, period)
             elif kind == "where":
                 new = self.metrics.reset_period(state)
                 state = jax.tree.map(lambda n, o: jnp.where(when, n, o), new, state)
