@@ -1,11 +1,11 @@
 """The package's layout: one owner per concept, and layers that import only downwards;
 the tests in one folder per layer.
 
-core (the spec, the state and its in-graph functions, tags, registries) <- host (report ->
-Record, the logger) <- writers <- integrations (jaxmetrics.brax <- jaxmetrics.playground,
-which builds on it) <- examples. The
-registries of statistics and reductions are the only lists of their names; the in-graph
-modules that use the names (`_stream`, `_episode`) are checked against them here.
+The layers are folders: `_core` (the spec, the state and its in-graph functions, tags,
+registries) <- `_host` (report -> Record, the logger) <- `_writers` <- integrations
+(`brax` <- `playground`, which builds on it) <- `examples`. The registries of statistics and
+reductions are the only lists of their names; the in-graph modules that use the names
+(`_stream`, `_episode`) are checked against them here.
 """
 
 import ast
@@ -17,63 +17,32 @@ import pytest
 
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb
-from jaxmetrics import _episode, _reductions, _spec, _statistics, _stream, _tags
+from jaxmetrics._core import _episode, _reductions, _spec, _statistics, _stream, _tags
 
 PACKAGE = Path(jm.__file__).resolve().parent
 
-CORE = {
-    "_checkpoint",
-    "_count",
-    "_episode",
-    "_fresh",
-    "_inputs",
-    "_metrics",
-    "_numerics",
-    "_reductions",
-    "_rows",
-    "_sharding",
-    "_sketch",
-    "_spec",
-    "_state",
-    "_statistics",
-    "_stream",
-    "_tags",
-    "_validate",
-}
-# The wrappers that report by themselves hand reports to the Logger: host layer.
-HOST = {
-    "_call_checks",
-    "_channel",
-    "_cuda",
-    "_close_at_exit",
-    "_emit",
-    "_emitted",
-    "_errors",
-    "_history",
-    "_logger",
-    "_programs",
-    "_report",
-    "_reporting",
-    "_ring",
-    "_runs",
-    "_seeds",
-    "_seeds_run",
-    "_timer",
-    "_transfer",
-    "_wrap_step",
-    "_writer_thread",
-}
-LAYERS = [CORE, HOST, {"_writers"}, {"brax"}, {"playground"}, {"examples", "bench", "__init__"}]
+# The layer folders from the bottom up; the package's `__init__` re-exports the first three.
+LAYERS = ["_core", "_host", "_writers", "__init__", "brax", "playground", "examples", "bench"]
+# Layers whose modules are checked one by one (a module there is a unit, e.g. `_core/_spec`).
+SPLIT = {"_core", "_host"}
 # What a writer sees (TagInfo, Record, the registries) must not pull in JAX.
-PURE = {"_reductions", "_report", "_spec", "_statistics", "_tags", "_validate", "_writers"}
+PURE = {"_core/_reductions", "_host/_record", "_core/_spec", "_core/_statistics"}
+PURE |= {"_core/_tags", "_core/_validate", "_writers"}
 
 
-def layer(top: str) -> int:
-    return next(i for i, names in enumerate(LAYERS) if top in names)
+def unit(parts: list[str] | tuple[str, ...]) -> str:
+    """The unit a module path belongs to: `_core/_spec` in the split layers, else its folder."""
+    if parts and parts[0] in SPLIT:
+        return "/".join(parts[:2]) if len(parts) > 1 else parts[0]
+    return parts[0] if parts else "__init__"
+
+
+def layer(name: str) -> int:
+    return LAYERS.index(name.split("/")[0])
 
 
 def imports(path: Path) -> tuple[set[str], set[str]]:
-    """(top-level jaxmetrics modules, other top-level packages) that `path` imports."""
+    """(jaxmetrics units, other top-level packages) that `path` imports."""
     rel = path.relative_to(PACKAGE).with_suffix("").parts
     ours, others = set(), set()
     for node in ast.walk(ast.parse(path.read_text())):
@@ -81,7 +50,7 @@ def imports(path: Path) -> tuple[set[str], set[str]]:
             for a in node.names:
                 parts = a.name.split(".")
                 if parts[0] == "jaxmetrics":
-                    ours.add(parts[1] if len(parts) > 1 else "__init__")
+                    ours.add(unit(parts[1:]))
                 else:
                     others.add(parts[0])
         elif isinstance(node, ast.ImportFrom):
@@ -94,25 +63,38 @@ def imports(path: Path) -> tuple[set[str], set[str]]:
             else:
                 target = [*rel[: len(rel) - node.level], *(node.module or "").split(".")]
                 target = [t for t in target if t]
-            if target:
-                ours.add(target[0])
-            else:  # `from . import x` at the top: each name is a module
-                ours.update(a.name for a in node.names)
+            if target in ([], *([s] for s in SPLIT)):  # `from .. import x`: each x a module
+                for a in node.names:
+                    name = unit([*target, a.name])
+                    ours.add(
+                        name
+                        if (PACKAGE / name).exists() or name.split("/")[0] in SPLIT
+                        else "__init__"
+                    )
+            else:
+                ours.add(unit(target))
     return ours, others
 
 
 MODULES = sorted(p for p in PACKAGE.rglob("*.py"))
 
 
+def test_every_module_is_in_a_layer_folder():
+    flat = [p.name for p in PACKAGE.glob("*.py") if p.name != "__init__.py"]
+    assert not flat, f"modules outside the layer folders: {flat}"
+    folders = {p.name for p in PACKAGE.iterdir() if p.is_dir() and p.name != "__pycache__"}
+    assert folders == set(LAYERS) - {"__init__"}
+
+
 @pytest.mark.parametrize("path", MODULES, ids=[str(p.relative_to(PACKAGE)) for p in MODULES])
 def test_modules_import_only_their_layer_or_below(path):
     rel = path.relative_to(PACKAGE).with_suffix("").parts
-    top = rel[0]
+    own = unit(rel)
     ours, others = imports(path)
-    for dep in ours - {top}:
-        assert layer(dep) <= layer(top), f"{'/'.join(rel)} (layer {layer(top)}) imports {dep}"
-    if top in PURE:
-        assert ours <= PURE, f"{'/'.join(rel)} imports the JAX core: {ours - PURE}"
+    for dep in ours - {own}:
+        assert layer(dep) <= layer(own), f"{'/'.join(rel)} (layer {layer(own)}) imports {dep}"
+    if own in PURE:
+        assert ours - {own} <= PURE, f"{'/'.join(rel)} imports the JAX core: {ours - PURE}"
         assert "jax" not in others, f"{'/'.join(rel)} imports jax"
 
 
@@ -121,8 +103,8 @@ def test_no_module_imports_itself_through_others():
     # concept: each should own its part.
     graph: dict[str, set[str]] = {}
     for path in MODULES:
-        top = path.relative_to(PACKAGE).with_suffix("").parts[0]
-        graph.setdefault(top, set()).update(imports(path)[0] - {top})
+        own = unit(path.relative_to(PACKAGE).with_suffix("").parts)
+        graph.setdefault(own, set()).update(imports(path)[0] - {own})
 
     def circle(node: str, trail: list[str]) -> list[str] | None:
         if node in trail:
@@ -133,8 +115,8 @@ def test_no_module_imports_itself_through_others():
                 return found
         return None
 
-    for top in sorted(graph):
-        found = circle(top, [])
+    for own in sorted(graph):
+        found = circle(own, [])
         assert found is None, " -> ".join(found)
 
 
@@ -143,7 +125,7 @@ TESTS = PACKAGE.parent / "tests"
 # imports no module of a layer above its folder's. `import jaxmetrics` (the public names)
 # is allowed everywhere, as is the bench's HLO inspection (`bench._hlo`), which the tests
 # share with the bench.
-TEST_FOLDERS = {"core": 0, "host": 1, "writers": 2, "integrations": 4, "examples": 5, "docs": 5}
+TEST_FOLDERS = {"core": 0, "host": 1, "writers": 2, "integrations": 5, "examples": 7, "docs": 7}
 SHARED_WITH_TESTS = {("bench", "_hlo")}
 
 
@@ -166,7 +148,7 @@ def test_tests_are_in_folders_by_layer_and_import_nothing_above_it():
                         continue
                     if tuple(parts[1:3]) in SHARED_WITH_TESTS:
                         continue
-                    if parts[1] in {m for names in LAYERS for m in names}:
+                    if parts[1] in LAYERS:
                         assert layer(parts[1]) <= top, f"tests/{folder}/{path.name} imports {name}"
 
 
@@ -176,7 +158,7 @@ def test_progress_fn_builds_records_without_the_jax_core():
 
 
 def test_old_module_names_are_gone():
-    for gone in ("_flush.py", "_step.py", "_writers/_record.py"):
+    for gone in ("_flush.py", "_step.py", "_writers/_record.py", "_reporting.py", "_emitted.py"):
         assert not (PACKAGE / gone).exists(), gone
 
 
@@ -241,7 +223,7 @@ def test_reductions_registry_matches_the_episode_blocks_and_the_helpers():
 
 
 def test_validation_helper_refuses_bools_and_accepts_numpy_ints():
-    from jaxmetrics._validate import is_int, is_number
+    from jaxmetrics._core._validate import is_int, is_number
 
     assert [is_int(v) for v in (3, np.int64(3), True, 3.0, "3")] == [1, 1, 0, 0, 0]
     assert [is_number(v) for v in (3, 2.5, np.float32(2.5), False, None)] == [1, 1, 1, 0, 0]

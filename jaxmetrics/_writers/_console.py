@@ -3,10 +3,10 @@
 from collections.abc import Sequence
 from typing import IO
 
-from .. import _statistics, _tags
-from .._report import Record
-from .._tags import TagInfo
-from .._validate import is_int
+from .._core import _statistics, _tags
+from .._core._tags import TagInfo
+from .._core._validate import is_int
+from .._host._record import Record
 
 
 def _fmt(v: float | int) -> str:

@@ -8,9 +8,9 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
-from .._report import Record
-from .._tags import TagInfo
-from .._validate import is_int
+from .._core._tags import TagInfo
+from .._core._validate import is_int
+from .._host._record import Record
 from ._append import AppendFile
 from ._paths import fs_path
 

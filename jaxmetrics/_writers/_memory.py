@@ -4,9 +4,9 @@ import threading
 from collections.abc import Sequence
 from typing import Any
 
-from .. import _tags
-from .._report import Record
-from .._tags import TagInfo
+from .._core import _tags
+from .._core._tags import TagInfo
+from .._host._record import Record
 
 
 class MemoryWriter:

@@ -4,9 +4,9 @@ import threading
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from .. import _tags
-from .._report import Record
-from .._tags import TagInfo
+from .._core import _tags
+from .._core._tags import TagInfo
+from .._host._record import Record
 from ._paths import check_hparams
 
 # MLflow's limit on the metrics of one `log_batch` call.

@@ -10,10 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from .. import _tags
-from .._report import HistogramData, Record
-from .._tags import TagInfo
-from .._validate import is_int
+from .._core import _tags
+from .._core._tags import TagInfo
+from .._core._validate import is_int
+from .._host._record import HistogramData, Record
 from ._append import AppendFile
 from ._paths import check_hparams, writable_dir
 

@@ -6,9 +6,9 @@ from typing import Any
 
 import numpy as np
 
-from .._report import Record
-from .._tags import TagInfo
-from .._validate import is_int
+from .._core._tags import TagInfo
+from .._core._validate import is_int
+from .._host._record import Record
 from ._paths import writable_dir
 
 # `wandb.Histogram` refuses more bins than this (`wandb.sdk.data_types.histogram`).

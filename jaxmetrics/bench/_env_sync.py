@@ -156,7 +156,7 @@ def _ablation(reporter: Any, kind: str) -> Any:
     import jax
     import jax.numpy as jnp
 
-    from .._reporting import Reporter
+    from .._host._wrapper_reporter import Reporter
 
     class Ablation(Reporter):
         def __init__(self) -> None:

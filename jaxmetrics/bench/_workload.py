@@ -117,7 +117,7 @@ def floor_update(s: FloorState, values: jax.Array, done: jax.Array) -> FloorStat
 
 class LayoutFloorState(NamedTuple):
     """The floor over jaxmetrics' episode layout: the three `[M, E]` accumulators of
-    `jaxmetrics._episode.EpisodeState` (a step count and two float slots), here a
+    `jaxmetrics._core._episode.EpisodeState` (a step count and two float slots), here a
     Welford mean and M2 per episode, and the finished episodes' means summed."""
 
     steps: jax.Array  # [M, E] int32
@@ -142,7 +142,7 @@ def layout_floor_init(num_metrics: int, num_envs: int) -> LayoutFloorState:
 def _row_sums(a: jax.Array) -> jax.Array:
     """`a[M, E]` summed over E, past 4,096 entries in parts of 256 and then the parts:
     summed whole in the accumulators' kernel, a row of 8,192 or 16,384 entries is one
-    program of XLA's (as it was in `jaxmetrics._stream.batch_one_pass`, which reduces the
+    program of XLA's (as it was in `jaxmetrics._core._stream.batch_one_pass`, which reduces the
     same way). The barrier keeps XLA from merging the two sums back into one."""
     rows, width = a.shape
     if width <= 4096:

@@ -13,9 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from .. import _tags
-from .._report import RecordBuilder, Writer, check_writers
-from .._tags import TagInfo
+from .._core import _tags
+from .._core._tags import TagInfo
+from .._host._record import RecordBuilder, Writer, check_writers
 
 # Brax PPO's learner values (brax/training/agents/ppo/losses.py) -> jaxmetrics names.
 _LEARNER_NAMES = {

@@ -11,9 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _reductions
-from .._spec import DEFAULT_STATS, Stat, Term
-from .._validate import is_int
+from .._core import _reductions
+from .._core._spec import DEFAULT_STATS, Stat, Term
+from .._core._validate import is_int
 from ._wrapper import Transition
 
 

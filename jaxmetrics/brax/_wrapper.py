@@ -24,11 +24,11 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State, Wrapper
 from brax.envs.wrappers import training as brax_training
 
-from .._metrics import Metrics
-from .._reporting import Reporter
-from .._sharding import placed
-from .._state import MetricsState
-from .._validate import is_int
+from .._core._metrics import Metrics
+from .._core._metrics_state import MetricsState
+from .._core._sharding import placed
+from .._core._validate import is_int
+from .._host._wrapper_reporter import Reporter
 from ._upstream import default_promotion
 
 STATE_KEY = "jaxmetrics"

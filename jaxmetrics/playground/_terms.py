@@ -3,7 +3,7 @@
 from collections.abc import Sequence
 from typing import Any
 
-from .._spec import DEFAULT_STATS, Stat, Term
+from .._core._spec import DEFAULT_STATS, Stat, Term
 from ..brax._terms import norm
 
 

@@ -17,7 +17,7 @@ from brax.envs.wrappers import training as brax_training
 from mujoco_playground import MjxEnv
 from mujoco_playground import wrapper as playground_wrapper
 
-from .._metrics import Metrics
+from .._core._metrics import Metrics
 from ..brax._wrapper import BRAX_AXIS, MetricsWrapper
 
 

@@ -25,7 +25,7 @@ from reference import SIMPLE_STATS, RefStream, episode_value
 from test_core_reductions import assert_stat_close
 
 import jaxmetrics as jm
-from jaxmetrics._stream import SegmentPlan
+from jaxmetrics._core._stream import SegmentPlan
 from jaxmetrics.bench._hlo import COLLECTIVES
 
 E, T = 12, 10
@@ -257,7 +257,7 @@ def test_segments_serve_every_batch_on_cpu_large_ones_elsewhere_and_none_to_our_
     assert scatters(True) > scatters(False)  # the switch picks the fold
     assert plan.serves(1)  # this suite runs on the CPU
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    seg = jm._stream._segments
+    seg = jm._core._stream._segments
     limit = seg.ACCELERATOR_MIN_ENTRIES
     assert plan.rows < seg.ACCELERATOR_MIN_GROUPS * len(plan.blocks)  # few groups: masked
     assert not plan.serves(1) and not plan.serves(limit)
@@ -266,7 +266,7 @@ def test_segments_serve_every_batch_on_cpu_large_ones_elsewhere_and_none_to_our_
     assert plan.serves(-(-limit // plan.rows))
     # Where our kernel folds the rows (a GPU, one shard, a float32 batch it fits), never.
     monkeypatch.setattr(seg, "ACCELERATOR_MIN_ENTRIES", 1)
-    fits = jm._stream._kernel.MAX_BATCH
+    fits = jm._core._stream._kernel.MAX_BATCH
     assert plan.serves(fits) and not plan.serves(fits, True)
     assert plan.serves(fits + 1, True)
 
@@ -317,7 +317,7 @@ def test_period_statistics_of_64_groups_hold_no_array_of_groups_times_envs():
 def test_both_scatter_forms_give_each_groups_batch_statistics(seed, offset):
     """`segment_batch`'s CPU form (a scatter per statistic) and its accelerator form (one
     per kind of combination) against numpy, per source and group, on one CPU."""
-    from jaxmetrics._stream import _segments
+    from jaxmetrics._core._stream import _segments
 
     rng = np.random.default_rng(seed)
     sources, envs, groups = 3, 64, np.array([5, 2, 5], np.int32)
@@ -356,7 +356,7 @@ def test_both_scatter_forms_give_each_groups_batch_statistics(seed, offset):
 def test_both_scatter_forms_fold_env_shards_alone(axis_type):
     """Per env shard (`vmap` over a leading axis split over devices, as `update` folds a
     sharded state), each form gives the unsharded numbers, with no collective."""
-    from jaxmetrics._stream import _segments
+    from jaxmetrics._core._stream import _segments
 
     rng = np.random.default_rng(0)
     shards, sources, envs, groups = 4, 2, 16, np.array([3, 2], np.int32)

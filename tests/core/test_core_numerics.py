@@ -125,7 +125,7 @@ def test_ema_closed_form_without_offset_drifts_past_the_bound():
 def test_one_pass_and_two_pass_batch_moments_agree():
     # Accelerators fold a batch in one reduction (Chan's pairwise moments in its
     # combiner), the CPU in two passes around a pivot; both on one input, on the CPU.
-    from jaxmetrics import _stream
+    from jaxmetrics._core import _stream
 
     rng = np.random.default_rng(3)
     v = (1e4 + rng.standard_normal((4, 4096))).astype(np.float32)
@@ -159,7 +159,7 @@ def test_one_pass_batch_reduces_long_rows_in_parts(width):
     # Past 4,096 entries the one reduction takes each row in parts of 256 entries (the
     # last padded with empty entries at 5,000), then the parts; against float64 numpy:
     # counts, min, max and sums of ints exact, the moments to float32 rounding.
-    from jaxmetrics import _stream
+    from jaxmetrics._core import _stream
 
     rng = np.random.default_rng(width)
     v = (1e4 + rng.standard_normal((4, width))).astype(np.float32)

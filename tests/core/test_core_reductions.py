@@ -188,7 +188,7 @@ def test_counts_of_one_step_past_a_byte_are_exact(monkeypatch, path):
     # (`Metrics.update`): one step of 700 envs, each NaN and ending, in groups with some
     # indices out of range, must count every one. Against numpy on the inputs, on the
     # jnp path, the CUDA kernel's (interpret mode) and the segment reductions'.
-    from jaxmetrics import _stream
+    from jaxmetrics._core import _stream
 
     n, names = 700, ("a", "b", "c")
     stats = ("count", "max") if path == "segments" else ("count", jm.ema(0.1))
@@ -382,7 +382,7 @@ def test_bool_and_int_outputs_accepted(dtype):
 def test_both_histogram_counting_paths_match_numpy(slots, rows):
     # The CPU lowering scatters, accelerators compare-and-count (lax.platform_dependent):
     # both are checked here, since CI has no accelerator. Slot 11 and 12 match no bin.
-    from jaxmetrics._stream import slot_counts_compare, slot_counts_scatter
+    from jaxmetrics._core._stream import slot_counts_compare, slot_counts_scatter
 
     slot = np.tile(np.asarray(slots, np.int32), (rows, 1))
     slot[1:] = (slot[1:] + np.arange(1, rows)[:, None]) % 13
@@ -405,7 +405,7 @@ def test_both_histogram_counting_paths_match_numpy(slots, rows):
 def test_arrival_ranks_count_the_later_entries_of_each_row(rows):
     # The window slots and EMA weights come from these ranks; they are computed in two
     # levels (blocks of entries, then blocks), checked here against a Python count.
-    from jaxmetrics import _stream
+    from jaxmetrics._core import _stream
 
     mask = np.array(rows, dtype=bool).reshape(len(rows), -1)
     after, k = jax.jit(_stream.arrivals_after)(jnp.asarray(mask))
@@ -441,7 +441,7 @@ def test_fused_kernel_reads_a_row_in_blocks(rows, batch, size, seed):
     # A batch of one program that is not a power of two is read in two blocks, the second
     # overlapping the first (in all but one entry at 513): the arrival ranks, the moments
     # and the ring writes across blocks, against the same loop.
-    from jaxmetrics._stream import _chunks
+    from jaxmetrics._core._stream import _chunks
 
     assert _chunks.chunking(rows, batch, False, ranked=True) == (batch, 1, False)
     assert _chunks.blocking(batch)[1] == 2
@@ -468,7 +468,7 @@ def test_fused_kernel_folds_a_long_row_in_chunks(rows, batch, size, seed):
     # several, the last chunk of a row that chunks do not divide overlaps the one before
     # (3,000: in 72 entries; 4,097: in all but one), and the chunks' moments are combined;
     # against the same loop.
-    from jaxmetrics._stream import _chunks
+    from jaxmetrics._core._stream import _chunks
 
     assert _chunks.chunking(rows, batch, False, ranked=True)[1] > 1
     check_fused_kernel(rows, batch, size, seed)
@@ -490,7 +490,7 @@ def test_fused_kernel_folds_long_rows_without_ranks_in_larger_chunks(
     # Ungrouped period statistics (no EMA, no ring) need no chunk counts: chunks twice
     # the ranked rows' size, the last one overlapping the one before where they do not
     # divide the row (16,385 and 24,577), their moments combined; against the loop.
-    from jaxmetrics._stream import _chunks
+    from jaxmetrics._core._stream import _chunks
 
     assert _chunks.chunking(rows, batch, False, ranked=False) == (size, chunks, False)
     check_fused_kernel(rows, batch, 3, seed, ranked=False, pieces=1024 if batch > 60000 else None)
@@ -595,8 +595,8 @@ def test_reached_entries_are_listed_in_order_and_counted_rows_summed(
     # per chunk: with group rows the masked-in or flagged entries' indices, without them
     # the masked-in entries' values, each chunk's flags summed beside them. The listing's
     # kernel sums every counted row whole. Against numpy.
-    from jaxmetrics import _stream
-    from jaxmetrics._stream import _reached
+    from jaxmetrics._core import _stream
+    from jaxmetrics._core._stream import _reached
 
     rng = np.random.default_rng(batch)
     ok = rng.random((sources, batch)) < density
@@ -661,7 +661,7 @@ def test_fused_kernel_chunks_rows_past_1024_entries(rows, batch, size, seed, chu
     # chunks' counts. Masks drawn per 1,024 entries as empty,
     # full or in between, so that whole chunks are empty or full; rings smaller than a
     # chunk, and larger than several.
-    from jaxmetrics._stream import _chunks
+    from jaxmetrics._core._stream import _chunks
 
     got = _chunks.chunking(rows, batch, False, ranked=True)
     assert (got.n, got.counted_here) == (chunks, itself)
@@ -690,8 +690,8 @@ def check_fused_kernel(
     loop reads the rows masked in numpy. `pieces`: the mask's density drawn per run of
     that many entries of a row (else one density for the whole batch). `listed`: group
     rows read from the lists of reached entries (`_reached`), else from the batch."""
-    from jaxmetrics import _stream
-    from jaxmetrics._stream import _kernel
+    from jaxmetrics._core import _stream
+    from jaxmetrics._core._stream import _kernel
 
     rng = np.random.default_rng(seed)
     sources = rows
@@ -801,8 +801,8 @@ def check_fused_kernel(
 def test_fused_kernel_serves_float32_batches_of_32_to_65536(monkeypatch, num_envs, dtype, fused):
     # The kernel holds float32 only: a float64 state, and batches under the kernel's
     # smallest or past its largest, take the jnp path.
-    from jaxmetrics import _stream
-    from jaxmetrics._stream import _kernel
+    from jaxmetrics._core import _stream
+    from jaxmetrics._core._stream import _kernel
 
     assert _kernel.fits(num_envs, dtype) == fused
     fold = _stream.add_with_counts
@@ -827,7 +827,7 @@ def test_period_statistics_alone_fold_in_the_kernel_past_4096_envs_without_lists
     # kernel's past it, whose chunks need no lists of reached entries at any size (one
     # Pallas call); with an EMA the kernel serves every size, and past 16,384 envs
     # reads the rows from the lists (a second call, the listing's).
-    from jaxmetrics import _stream
+    from jaxmetrics._core import _stream
 
     fold = _stream.add_with_counts
     monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
@@ -854,8 +854,8 @@ def test_the_fused_kernel_updates_the_rows_fields_where_each_row_is_one_program(
     # `[R]` fields. Chunked rows, and a spec whose EMA keeps its newest values for exact
     # merges (rings XLA advances; a reporting state's), take XLA's update of the `[R]`
     # fields.
-    from jaxmetrics import _fresh, _stream
-    from jaxmetrics._stream import _update
+    from jaxmetrics._core import _fresh, _stream
+    from jaxmetrics._core._stream import _update
 
     fold = _stream.add_with_counts
     monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
@@ -882,9 +882,9 @@ def test_fused_kernel_counts_listed_rows_into_histograms_by_programs_of_their_ow
     # histograms of other bins and ranges (rows 0 and 2 in one, row 1 in the other).
     # Entries that only a non-finite flag lists are not counted, NaN in no slot, the
     # infinities under and over the range; against numpy's float64 histograms.
-    from jaxmetrics import _stream
-    from jaxmetrics._stream import _hists, _kernel
-    from jaxmetrics._stream._state import HistGroup
+    from jaxmetrics._core import _stream
+    from jaxmetrics._core._stream import _hists, _kernel
+    from jaxmetrics._core._stream._state import HistGroup
 
     rng = np.random.default_rng(batch)
     src = (2, 0, 3)
@@ -943,8 +943,8 @@ def test_fused_kernel_carries_histogram_counts_into_the_high_word(
     # low words and carries into the high word where one wraps. From low words 2 below
     # 2^32, the counts after two steps against numpy's histogram of the finite values in
     # float64, as 64-bit integers; and the state as the jnp path leaves it.
-    from jaxmetrics import _stream
-    from jaxmetrics._stream import _reached
+    from jaxmetrics._core import _stream
+    from jaxmetrics._core._stream import _reached
 
     monkeypatch.setattr(_reached, "listed", lambda *_: listed)
 
@@ -1016,8 +1016,8 @@ def test_fused_kernel_folds_a_rollout_like_the_jnp_path(
     # statistics only, which the kernel folds for group rows and past 4,096 envs; `listed`:
     # the rows read from the lists of reached entries (`_reached`, with group rows or past
     # 16,384 envs without), else from the batch.
-    from jaxmetrics import _stream
-    from jaxmetrics._stream import _reached
+    from jaxmetrics._core import _stream
+    from jaxmetrics._core._stream import _reached
 
     monkeypatch.setattr(_reached, "listed", lambda *_: listed)
 

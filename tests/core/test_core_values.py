@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxmetrics as jm
-from jaxmetrics import _statistics
+from jaxmetrics._core import _statistics
 
 
 @pytest.mark.parametrize(

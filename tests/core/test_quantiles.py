@@ -17,8 +17,8 @@ from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import jaxmetrics as jm
-from jaxmetrics import _sketch
-from jaxmetrics._count import Count
+from jaxmetrics._core import _sketch
+from jaxmetrics._core._count import Count
 
 # Levels at which numpy's float64 rank equals the exact one (see test_rank_is_exact...).
 LEVELS = (0, 1, 10, 25, 50, 75, 90, 99, 99.9, 100)

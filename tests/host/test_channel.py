@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxmetrics as jm
-from jaxmetrics import _channel, _ring
+from jaxmetrics._host import _channel, _ring
 
 SEEDS, STEPS, PERIOD, NUM_ENVS = 2, 24, 4, 3
 

@@ -18,7 +18,7 @@ import pytest
 from tensorboard.backend.event_processing import event_accumulator as ea
 
 import jaxmetrics as jm
-from jaxmetrics import _stream
+from jaxmetrics._core import _stream
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -99,7 +99,7 @@ _CHILD = """
 import sys, time
 import jax.numpy as jnp
 import jaxmetrics as jm
-from jaxmetrics import _stream
+from jaxmetrics._core import _stream
 
 root, n = sys.argv[1], int(sys.argv[2])
 metrics = jm.Metrics(logged=["x"])
@@ -344,7 +344,7 @@ def test_flush_moves_o_metrics_bytes_whatever_num_envs():
 
 
 def test_loggers_of_a_spec_share_its_programs_and_they_go_with_the_spec():
-    from jaxmetrics import _programs
+    from jaxmetrics._host import _programs
 
     def report_once(metrics):
         with jm.Logger(metrics, [jm.MemoryWriter()]) as logger:
@@ -365,7 +365,7 @@ def test_loggers_of_a_spec_share_its_programs_and_they_go_with_the_spec():
 
 
 def test_packer_layout_comes_from_shapes_before_anything_is_traced():
-    from jaxmetrics._transfer import Packer
+    from jaxmetrics._host._transfer import Packer
 
     metrics = jm.Metrics(logged=["x"], counters=["u"])
     shapes = jax.eval_shape(lambda: metrics.compute(metrics.init(1)))
@@ -391,7 +391,7 @@ def test_packer_layout_comes_from_shapes_before_anything_is_traced():
 
 
 def test_packer_lays_the_report_out_in_its_layout_and_unpacks_it_in_its_order():
-    from jaxmetrics._transfer import Packer
+    from jaxmetrics._host._transfer import Packer
 
     metrics = jm.Metrics(logged={"x": jm.Logged(stats=("mean", "max", jm.window(2)))})
     order = [i.tag for i in metrics.tags]
@@ -410,7 +410,7 @@ def test_packer_lays_the_report_out_in_its_layout_and_unpacks_it_in_its_order():
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
 def test_a_joined_report_parts_into_its_floats_and_counts_bit_for_bit(dtype):
-    from jaxmetrics._transfer import Packer
+    from jaxmetrics._host._transfer import Packer
 
     with jax.enable_x64(dtype == "float64"):
         metrics = jm.Metrics(logged=["x"], counters=["u"], dtype=dtype)
@@ -498,7 +498,7 @@ _CHILD_NO_CLOSE = """
 import sys, time
 import jax.numpy as jnp
 import jaxmetrics as jm
-from jaxmetrics import _stream
+from jaxmetrics._core import _stream
 
 class Slow(jm.JsonlWriter):
     def write(self, record):

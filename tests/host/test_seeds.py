@@ -12,7 +12,7 @@ import scipy.stats
 from tensorboard.backend.event_processing import event_accumulator as ea
 
 import jaxmetrics as jm
-from jaxmetrics._seeds import iqm, summarize
+from jaxmetrics._host._seed_statistics import iqm, summarize
 
 SEEDS = 5  # not a multiple of 4: the IQM cuts floor(n / 4) seeds at each end
 STEPS = (10, 20, 30)

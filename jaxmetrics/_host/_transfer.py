@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _count
-from ._count import Count
+from .._core import _count
+from .._core._count import Count
 
 
 class _Slot(NamedTuple):

@@ -1,6 +1,6 @@
 """The host side of `Logger.emit`: one callback's reports, split by run and queued.
 
-The in-graph emit (`_emit`) makes one ordered `io_callback` per period end, carrying
+The in-graph emit (`_emit_in_graph`) makes one ordered `io_callback` per period end, carrying
 every vmapped seed's packed report, step, `when` and run index. `EmitReceiver` keeps the
 seeds whose period ended and queues one writer job per record. A reporting wrapper's
 steps are env steps, which restart when a trainer resets its envs; `EnvStepsContinuation`
@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from ._count import Count, to_int
+from .._core._count import Count, to_int
+from .._core._tags import TagInfo
 from ._errors import CallerReports
 from ._runs import HostReport
-from ._tags import TagInfo
 from ._transfer import Packer
 from ._writer_thread import WriterThread
 

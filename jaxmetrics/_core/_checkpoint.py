@@ -4,7 +4,7 @@ spec does not keep are saved as None and restored from a fresh state."""
 import jax
 import jax.numpy as jnp
 
-from ._state import MetricsState
+from ._metrics_state import MetricsState
 
 
 def to_checkpoint(state: MetricsState) -> MetricsState:

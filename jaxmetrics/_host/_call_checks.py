@@ -8,9 +8,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from ._spec import check_name
-from ._state import MetricsState
-from ._validate import is_int, is_number
+from .._core._metrics_state import MetricsState
+from .._core._spec import check_name
+from .._core._validate import is_int, is_number
 
 
 def check_settings(runs: Any, max_pending: Any, timeout: Any, timer_prefix: Any) -> None:

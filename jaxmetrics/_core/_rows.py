@@ -10,17 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _episode, _reductions, _stream, _tags
-from ._spec import (
-    Groups,
-    Logged,
-    MetricSpec,
-    Term,
-    check_name,
-    check_policy,
-    parse_stats,
-    reported,
-)
-from ._state import spec_id
+from ._metrics_state import spec_id
+from ._spec import Groups, Logged, MetricSpec, Term, check_name, check_policy, parse_stats, reported
 from ._tags import TagInfo
 
 BUILTIN_COUNTERS = ("env_steps", "episodes")

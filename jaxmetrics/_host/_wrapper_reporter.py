@@ -20,12 +20,12 @@ from typing import Any, Protocol
 import jax
 import jax.numpy as jnp
 
-from . import _count, _fresh
-from ._count import Count
+from .._core import _count, _fresh
+from .._core._count import Count
+from .._core._metrics import Metrics
+from .._core._metrics_state import MetricsState
+from .._core._validate import is_int
 from ._logger import Logger
-from ._metrics import Metrics
-from ._state import MetricsState
-from ._validate import is_int
 
 
 class ReportSink(Protocol):

@@ -43,13 +43,7 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
 from . import _reached, _update
-from ._chunks import (
-    chunk_counts,
-    chunking,
-    combine,
-    counted_input,
-    reads_counts,
-)
+from ._chunks import chunk_counts, chunking, combine, counted_input, reads_counts
 from ._hists import HistIn, HistRows, Pairs
 from ._program import program
 from ._selected import Selected

@@ -19,9 +19,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._count import Count, to_int
+from .._core._count import Count, to_int
+from .._core._validate import is_int
 from ._transfer import Packer
-from ._validate import is_int
 
 _INT32_MAX = 2**31 - 1
 

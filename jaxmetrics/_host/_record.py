@@ -17,8 +17,8 @@ from typing import Any, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-from . import _statistics, _tags
-from ._tags import TagInfo
+from .._core import _statistics, _tags
+from .._core._tags import TagInfo
 
 
 class HistogramData(NamedTuple):

@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
+from .._core._tags import TagInfo
 from ._errors import CallerReports
 from ._history import FetchedHistory
-from ._report import RecordBuilder, Writer, check_writers, close_quietly
-from ._seeds_run import SeedsSummaryRun
-from ._tags import TagInfo
+from ._record import RecordBuilder, Writer, check_writers, close_quietly
+from ._seed_run import SeedsSummaryRun
 from ._transfer import Packer
 from ._writer_thread import WriterThread
 

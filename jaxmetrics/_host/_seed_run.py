@@ -1,6 +1,6 @@
 """The cross-seed summary as one more run of a `Logger`: its checks, writers and records.
 
-`_seeds` computes the summary; this is where it meets the Logger. `Logger(runs=N,
+`_seed_statistics` computes the summary; this is where it meets the Logger. `Logger(runs=N,
 seeds_summary=[writers])` is checked before any run's writers are made, and on the writer
 thread `SeedsSummaryRun` takes every seed's record and writes each summary record that
 is complete to the summary writers.
@@ -9,9 +9,9 @@ is complete to the summary writers.
 from collections.abc import Sequence
 from typing import Any
 
-from ._report import Record, Writer, check_writers, close_quietly
-from ._seeds import SeedsSummary, summary_tags
-from ._tags import TagInfo
+from .._core._tags import TagInfo
+from ._record import Record, Writer, check_writers, close_quietly
+from ._seed_statistics import SeedsSummary, summary_tags
 from ._writer_thread import WriterThread
 
 _OWNER = "the seeds summary"

@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from . import _statistics, _tags
-from ._report import Record
-from ._tags import TagInfo
+from .._core import _statistics, _tags
+from .._core._tags import TagInfo
+from ._record import Record
 
 CONFIDENCE = 0.95
 """The level of the Student-t interval of the mean across seeds."""
@@ -37,7 +37,7 @@ def iqm(values: np.ndarray) -> float:
 
     Examples:
       >>> import numpy as np
-      >>> from jaxmetrics._seeds import iqm
+      >>> from jaxmetrics._host._seed_statistics import iqm
       >>> iqm(np.array([1.0, 2.0, 3.0, 4.0, 100.0]))     # 5 seeds: 1 cut at each end
       3.0
     """
@@ -55,7 +55,7 @@ def summarize(values: Sequence[float]) -> dict[str, float | int]:
     * std / sqrt(n)` (`seeds_ci_lower`, `seeds_ci_upper`). Nothing for no finite value.
 
     Examples:
-      >>> from jaxmetrics._seeds import summarize
+      >>> from jaxmetrics._host._seed_statistics import summarize
       >>> s = summarize([1.0, 2.0, 3.0, float("nan")])
       >>> s["seeds_count"], s["seeds_mean"], round(s["seeds_ci_upper"], 4)
       (3, 2.0, 4.4841)

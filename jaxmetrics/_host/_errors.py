@@ -15,7 +15,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ._tags import TagInfo
+from .._core._tags import TagInfo
 from ._transfer import Packer
 
 

@@ -9,9 +9,9 @@ import numpy as np
 
 from . import _checkpoint, _count, _episode, _fresh, _inputs, _rows, _stream, _tags
 from ._count import Count
+from ._metrics_state import MetricsState
 from ._sharding import like, shard_count, state_mesh
 from ._spec import Groups, Logged, MetricSpec, Term, reported
-from ._state import MetricsState
 from ._tags import TagInfo
 
 

@@ -6,8 +6,8 @@ import jax
 import jax.numpy as jnp
 
 from . import _count, _episode, _stream
+from ._metrics_state import MetricsState
 from ._rows import SpecRows
-from ._state import MetricsState
 
 
 def fresh(rows: SpecRows, num_envs: int, shards: int, ema_history: bool = False) -> MetricsState:

@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from ._errors import CallerReports, WriterTimeoutError
-from ._report import Record, Writer
+from ._record import Record, Writer
 
 Job = Callable[[], Any]
 

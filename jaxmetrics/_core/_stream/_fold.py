@@ -23,15 +23,7 @@ from .._sharding import gathered
 from . import _hists, _kernel, _reached, _segments, _update
 from ._segments import SegmentPlan
 from ._selected import Selected
-from ._state import (
-    Ring,
-    StreamPlan,
-    StreamState,
-    packed,
-    take_rows,
-    weight_dtype,
-    window_ring,
-)
+from ._state import Ring, StreamPlan, StreamState, packed, take_rows, weight_dtype, window_ring
 
 
 def add(

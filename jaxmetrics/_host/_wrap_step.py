@@ -6,8 +6,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ._metrics import Metrics
-from ._reporting import Reporter
+from .._core._metrics import Metrics
+from ._wrapper_reporter import Reporter
 
 
 class Transition(NamedTuple):

@@ -20,12 +20,12 @@ from typing import Any, NamedTuple
 
 import jax
 
-from . import _stream, _tags
-from ._metrics import Metrics
-from ._report import derived_tags
-from ._sharding import mesh_of, placed, replicated
-from ._state import MetricsState
-from ._tags import TagInfo
+from .._core import _stream, _tags
+from .._core._metrics import Metrics
+from .._core._metrics_state import MetricsState
+from .._core._sharding import mesh_of, placed, replicated
+from .._core._tags import TagInfo
+from ._record import derived_tags
 from ._transfer import Packer
 
 Packed = tuple[jax.Array, jax.Array]  # (floats [F], counts uint32 [2, K]), see `Packer`

@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import io_callback
 
+from .._core._validate import is_int
 from . import _ring
-from ._validate import is_int
 
 TESTED_JAX = ((0, 10), (0, 11))
 """JAX minor versions the ring channel is tested on (0.10.2 on the CPU, 0.11.2 on NVIDIA GPUs)."""

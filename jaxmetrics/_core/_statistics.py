@@ -1,7 +1,7 @@
 """The registry of statistics: every `TagInfo.stat` the library writes, in report order.
 
 Tag suffixes (`_tags`), the statistics a metric reports (`_spec.reported`), how a host record
-holds each value (`_report`) and the console's columns derive from `STATISTICS`; nothing
+holds each value (`_host._record`) and the console's columns derive from `STATISTICS`; nothing
 else lists statistic names. (`_stream.compute` produces the in-graph values under these
 names; `tests/test_layering.py` checks that the two agree.)
 """
@@ -21,7 +21,7 @@ class Statistic(NamedTuple):
         `jaxmetrics.ema/window/histogram/quantiles(...)`; "always": every metric;
         "running": `include_running`; "counter": every counter; "logger": added by the
         `Logger` from another tag; "seeds": the `Logger`'s cross-seed summary run
-        (`_seeds`), of a seed tag.
+        (`_host._seed_statistics`), of a seed tag.
       host: what a `Record` holds. "float": a float, left out when not finite;
         "exact": an exact int; "sparse": an exact int written from its first non-zero
         value on; "histogram": `HistogramData`; "window": the finite window contents.

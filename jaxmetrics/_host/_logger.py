@@ -4,9 +4,9 @@ A value's way from `flush` to a writer, one module a step:
 1. `_programs`: the jitted report program computes and resets the period, and packs the
    report into one array (`_transfer.Packer`); `flush` starts its copy to the host;
 2. `_writer_thread`: the job that writes it is queued for the writer thread;
-3. `_runs`: unpacks each run's part and builds its `Record` (`_report.RecordBuilder`);
-4. the run's writers get the record, and `_seeds_run` the seeds summary's.
-`emit` enters at step 2 through `_emit` (in-graph) and `_emitted` (host); `write_history`
+3. `_runs`: unpacks each run's part and builds its `Record` (`_record.RecordBuilder`);
+4. the run's writers get the record, and `_seed_run` the seeds summary's.
+`emit` enters at step 2 through `_emit_in_graph` and `_emit_receiver` (host); `write_history`
 through `_history`. What goes wrong on the way surfaces on the caller's thread (`_errors`).
 """
 
@@ -19,27 +19,28 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from . import _channel, _close_at_exit, _history, _tags
+from .._core import _tags
+from .._core._count import Count
+from .._core._metrics import Metrics
+from .._core._metrics_state import MetricsState
+from .._core._spec import check_name
+from .._core._tags import TagInfo
+from .._core._validate import is_int
+from . import _channel, _close_at_exit, _history
 from ._call_checks import check_settings, check_state, check_step, is_traced, scalar_args
-from ._count import Count
-from ._emit import InGraphEmit
-from ._emitted import EmitReceiver
+from ._emit_in_graph import InGraphEmit
+from ._emit_receiver import EmitReceiver
 from ._errors import CallerReports
 from ._errors import NonFiniteError as NonFiniteError
 from ._errors import ReportsLostError as ReportsLostError
 from ._errors import WriterError as WriterError
 from ._errors import WriterTimeoutError as WriterTimeoutError
 from ._history import History
-from ._metrics import Metrics
 from ._programs import report_programs, tag_table
-from ._report import Writer
+from ._record import Writer
 from ._runs import RunWriters, WritersArg, make_writers
-from ._seeds_run import SeedsSummaryRun, summary_run_tags, summary_writers
-from ._spec import check_name
-from ._state import MetricsState
-from ._tags import TagInfo
+from ._seed_run import SeedsSummaryRun, summary_run_tags, summary_writers
 from ._timer import Timers
-from ._validate import is_int
 from ._writer_thread import WriterThread
 
 
@@ -437,7 +438,7 @@ class Logger(AbstractContextManager):
     def emit_from_wrapper(
         self, state: MetricsState, step: Count, when: jax.Array, period: int
     ) -> MetricsState:
-        """The reporting wrappers' in-graph emit (`_reporting.ReportSink`), not for user
+        """The reporting wrappers' in-graph emit (`_wrapper_reporter.ReportSink`), not for user
         code: the step is an exact `Count` (env steps pass 2^31 in long runs), and under
         `vmap` each seed's position on the vmapped axis is its run. `period` (env steps)
         is kept to say, at `close`, why no record came if none did."""
