@@ -2,9 +2,15 @@
 
 A `Logger`'s writer thread is a daemon: it dies at interpreter exit with whatever is
 still queued. So every logger is registered here while open, and an exit handler closes
-them in creation order. An exception raised in an exit handler is printed and the
-process still exits with status 0; a failed close instead prints what was lost and
-exits with status 1, so that a job scheduler sees the failure.
+them in creation order. The handler is registered with the first logger, not at import:
+importing jaxmetrics changes nothing in the process.
+
+An exception raised in an exit handler is printed and the process still exits with status
+0; a failed close instead prints what was lost and makes the process exit with status 1, so
+that a job scheduler sees the failure. It does so without skipping anyone's exit handlers:
+`os._exit(1)` in the handler would skip those registered before ours (they run after it),
+for example a tracker's run finalizer. The status is set after every exit handler has run,
+when the interpreter clears its modules and drops `_EXIT_STATUS`.
 """
 
 import atexit
@@ -18,10 +24,29 @@ class _Closable(Protocol):
 
 
 _OPEN: dict[int, _Closable] = {}
+_REGISTERED: list[bool] = []
+
+
+class _ExitStatus:
+    """Exits the process with `status` when the interpreter drops it, after the exit
+    handlers: the one point after them where Python code still runs."""
+
+    def __init__(self, status: int):
+        self.status, self.exit = status, os._exit  # kept: `os` may be cleared before us
+
+    def __del__(self) -> None:
+        self.exit(self.status)
+
+
+# Holds the status while the other exit handlers run (see the module's docstring).
+_EXIT_STATUS: list[_ExitStatus] = []
 
 
 def register(logger: _Closable) -> None:
     """Closes `logger` at interpreter exit unless it is closed before (`forget`)."""
+    if not _REGISTERED:
+        atexit.register(_close_all)
+        _REGISTERED.append(True)
     _OPEN[id(logger)] = logger
 
 
@@ -44,7 +69,4 @@ def _close_all() -> None:
             "status 1:\n" + "\n".join(f"  {type(e).__name__}: {e}" for e in failed) + "\n"
         )
         sys.stderr.flush()
-        os._exit(1)
-
-
-atexit.register(_close_all)
+        _EXIT_STATUS.append(_ExitStatus(1))

@@ -3,12 +3,13 @@ ready-made terms over its `Transition`, and `ProgressFn`, a `progress_fn` for Br
 trainer that writes through jaxmetrics writers.
 
 Wrapper order: `AutoResetWrapper(MetricsWrapper(VmapWrapper(env), metrics, episode_length))`,
-built by `wrap`. Importing this module imports Brax; `import jaxmetrics` does not. It
-imports MuJoCo without its "Failed to import warp" lines and hides Brax's "not actively
-being maintained" warning, nothing else (`_upstream`); import it before Brax.
+built by `wrap`. Importing this module imports Brax; `import jaxmetrics` does not. Neither
+changes anything in the process; `quiet_upstream()` hides MuJoCo's "Failed to import warp"
+lines and Brax's "not actively being maintained" warning inside its block.
 """
 
 from ._upstream import default_promotion as default_promotion  # first: before Brax
+from ._upstream import quiet_upstream as quiet_upstream
 
 # isort: split
 from ._progress import ProgressFn as ProgressFn
@@ -40,6 +41,7 @@ __all__ = [
     "joint_velocity",
     "metrics_state",
     "norm",
+    "quiet_upstream",
     "replace_metrics_state",
     "state_metrics",
     "success_rate",

@@ -1,14 +1,8 @@
-"""Running Brax and MuJoCo from jaxmetrics: under JAX's default promotion, without two
-known notices.
+"""Running Brax and MuJoCo from jaxmetrics: under JAX's default promotion, and without two
+known notices where you ask for that.
 
-Importing this module (`import jaxmetrics.brax` does, before anything imports Brax):
-
-- imports MuJoCo's MJX with the two lines it prints when its optional warp backend is
-  not installed ("Failed to import warp: ...", "Failed to import mujoco_warp: ...")
-  left out of standard output; any other output of that import still goes through;
-- adds one warnings filter, for the `UserWarning` that Brax's `brax.io.mjcf` raises on
-  every env it builds ("Brax System, piplines and environments are not actively being
-  maintained ..."; MJX, which these envs run on, is). Nothing else is filtered.
+Importing `jaxmetrics.brax` changes nothing in the process: no warnings filter, no redirected
+output. `quiet_upstream()` hides the two notices inside its block only.
 """
 
 import contextlib
@@ -43,22 +37,37 @@ def default_promotion() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def _without_warp_lines() -> Iterator[None]:
+def quiet_upstream() -> Iterator[None]:
+    """Inside the block, two known upstream notices are hidden, nothing else.
+
+    - MuJoCo prints "Failed to import warp: ..." and "Failed to import mujoco_warp: ..." to
+      standard output when it is first imported without its optional warp backend
+      (harmless: MJX runs on JAX). Those two lines are dropped; any other output goes
+      through, after the block.
+    - Brax's `brax.io.mjcf` warns on every env it builds that its own physics pipelines are
+      "not actively being maintained" (MJX, which these envs run on, is). That one
+      `UserWarning` is ignored; the warnings filters are restored after the block.
+
+    Both are process-wide while the block runs (`sys.stdout` and `warnings.filters`), as
+    `contextlib.redirect_stdout` and `warnings.catch_warnings` are: wrap the imports and
+    the env builds, not a training loop that other threads print from.
+
+    Examples:
+      >>> import jaxmetrics.brax as jmb
+      >>> with jmb.quiet_upstream():
+      ...     from brax import envs
+      ...     env = envs.get_environment("inverted_pendulum", backend="mjx")
+    """
     captured = io.StringIO()
     try:
-        with contextlib.redirect_stdout(captured):
+        with warnings.catch_warnings(), contextlib.redirect_stdout(captured):
+            warnings.filterwarnings(
+                "ignore",
+                message="Brax System, piplines and environments are not actively being maintained",
+                category=UserWarning,
+                module=r"brax\.io\.mjcf",
+            )
             yield
     finally:
         kept = captured.getvalue().splitlines(keepends=True)
         sys.stdout.write("".join(line for line in kept if not line.startswith(_WARP_LINES)))
-
-
-with _without_warp_lines():
-    import mujoco.mjx  # noqa: F401  (imported here, once, for its side effect only)
-
-warnings.filterwarnings(
-    "ignore",
-    message="Brax System, piplines and environments are not actively being maintained",
-    category=UserWarning,
-    module=r"brax\.io\.mjcf",
-)

@@ -15,11 +15,11 @@ from collections.abc import Sequence
 import jax
 
 import jaxmetrics as jm
-import jaxmetrics.brax as jmb  # before Brax (see jaxmetrics.brax)
+import jaxmetrics.brax as jmb
 
-# isort: split
-from brax import envs
-from brax.training.agents.ppo import train as ppo
+with jmb.quiet_upstream():  # MuJoCo's warp lines, where warp is not installed
+    from brax import envs
+    from brax.training.agents.ppo import train as ppo
 
 
 def _brax_on_this_jax() -> None:
@@ -65,9 +65,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             shown = "" if ret is None else f"  eval return {float(ret):7.2f}"
             print(f"{time.time() - start:6.1f} s  step {int(step):>8}{shown}", flush=True)
 
+        with jmb.quiet_upstream():  # Brax's "not actively maintained" warning
+            env = envs.get_environment(args.env, backend="mjx")
         with jmb.default_promotion():
             ppo.train(
-                environment=envs.get_environment(args.env, backend="mjx"),
+                environment=env,
                 num_timesteps=args.timesteps,
                 episode_length=100,
                 num_envs=args.num_envs,

@@ -169,8 +169,8 @@ def test_only_the_tensorboard_launch_is_left_out():
 
 
 def assert_no_upstream_noise(executed: Executed) -> None:
-    # jaxmetrics.brax, imported before Brax, keeps MuJoCo's warp lines and Brax's
-    # maintenance warning out of every cell.
+    # `jmb.quiet_upstream()` around the imports and env builds keeps MuJoCo's warp lines
+    # and Brax's maintenance warning out of every cell.
     for c in executed.nb.cells:
         if c.cell_type == "code":
             shown = stream(c) + stream(c, "stderr")

@@ -243,6 +243,37 @@ _CHILD_HEAD = """
 """
 
 
+def test_exit_status_1_runs_every_other_exit_handler_and_import_registers_none():
+    # The status used to be set by os._exit(1) inside jaxmetrics' handler, which skipped the
+    # handlers registered before it (they run after it), e.g. a tracker's run finalizer.
+    out = _run_child(
+        """
+    import atexit, sys
+    import jax.numpy as jnp  # JAX registers exit handlers of its own
+    atexit.register(print, "registered before the import", flush=True)
+    before = atexit._ncallbacks()
+    import jaxmetrics as jm
+    assert atexit._ncallbacks() == before, "importing jaxmetrics registered an exit handler"
+    atexit.register(print, "registered after the import", flush=True)
+    class Failing:
+        def open(self, tags): pass
+        def write(self, record): raise OSError("disk gone")
+        def close(self): pass
+    m = jm.Metrics(logged=["x"])
+    logger = jm.Logger(m, [Failing()])
+    atexit.register(print, "registered after the Logger", flush=True)
+    logger.flush(m.log(m.init(0), {"x": 1.0}), 7)
+    """
+    )
+    assert out.returncode == 1, out.stderr
+    assert out.stdout.splitlines() == [
+        "registered after the Logger",
+        "registered after the import",
+        "registered before the import",
+    ]
+    assert "OSError('disk gone')" in out.stderr and "exiting with status 1" in out.stderr
+
+
 def test_records_lost_at_interpreter_exit_give_exit_status_1_and_say_so():
     # A writer error at exit printed "Exception ignored in atexit callback" and exited 0;
     # a stuck writer hung the exit.

@@ -611,24 +611,35 @@ def test_step_returns_the_types_reset_gives_so_host_loops_compile_once():
 
 
 _QUIET = """
-import warnings
+import sys, warnings
+import jaxmetrics as jm
+stdout = sys.stdout
 before = list(warnings.filters)
-import jaxmetrics.brax
-# numpy and scipy add filters of their own when imported; none may be a blanket "ignore".
-added = [f for f in warnings.filters if f not in before]
-assert not [f for f in added if f[0] == "ignore" and f[1] is None], added
-brax = [f for f in added if f[1] is not None and "brax" in f[1].pattern.lower()]
-print(len(brax), brax[0][0], brax[0][2].__name__, brax[0][3].pattern)
+import jaxmetrics.brax as jmb
 from brax import envs
-envs.get_environment("inverted_pendulum", backend="mjx")
-warnings.warn_explicit(
-    "Brax System, piplines and environments are not actively being maintained",
-    UserWarning, "elsewhere.py", 1, module="elsewhere",
-)
+# Importing jaxmetrics.brax changes nothing: no filter of Brax's (numpy and scipy add
+# their own when imported), no blanket "ignore", the same standard output.
+added = [f for f in warnings.filters if f not in before]
+assert not [f for f in added if f[1] is not None and "brax" in f[1].pattern.lower()], added
+assert not [f for f in added if f[0] == "ignore" and f[1] is None], added
+assert sys.stdout is stdout
+filters = list(warnings.filters)
+with jmb.quiet_upstream():
+    print("Failed to import warp: no module named 'warp'")
+    print("kept: printed inside the block")
+    print("Failed to import mujoco_warp: no module named 'mujoco_warp'")
+    envs.get_environment("inverted_pendulum", backend="mjx")
+    warnings.warn_explicit(
+        "Brax System, piplines and environments are not actively being maintained",
+        UserWarning, "elsewhere.py", 1, module="elsewhere",
+    )
+assert warnings.filters == filters and sys.stdout is stdout
+print("after the block")
+envs.get_environment("inverted_pendulum", backend="mjx")  # warns again: the filter is gone
 """
 
 
-def test_importing_jaxmetrics_brax_hides_the_two_known_notices_and_nothing_else():
+def test_quiet_upstream_hides_the_two_known_notices_inside_its_block_and_nothing_else():
     root = pathlib.Path(__file__).resolve().parents[2]
     out = subprocess.run(
         [sys.executable, "-W", "default", "-c", _QUIET],
@@ -638,9 +649,10 @@ def test_importing_jaxmetrics_brax_hides_the_two_known_notices_and_nothing_else(
         env=dict(os.environ, JAX_PLATFORMS="cpu"),
     )
     assert out.returncode == 0, out.stderr
-    assert out.stdout.splitlines() == [r"1 ignore UserWarning brax\.io\.mjcf"]  # no warp lines
-    # Brax's own warning is gone; the same text from elsewhere, and other warnings (jaxopt's
-    # deprecation, shown under -W default), still get through.
-    assert out.stderr.count("not actively being maintained") == 1
+    assert out.stdout.splitlines() == ["kept: printed inside the block", "after the block"]
+    # Brax's own warning is hidden in the block only; the same text from elsewhere, and
+    # other warnings (jaxopt's deprecation, shown under -W default), still get through.
+    assert out.stderr.count("not actively being maintained") == 2
     assert "elsewhere.py:1: UserWarning" in out.stderr
+    assert out.stderr.count("brax/io/mjcf.py") == 1, out.stderr
     assert "JAXopt is no longer maintained" in out.stderr

@@ -9,13 +9,13 @@ from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import jaxmetrics as jm
-import jaxmetrics.brax as jmb  # before Brax: imports MuJoCo without its warp lines
+import jaxmetrics.brax as jmb
 
 from ._config import PPOConfig
 from ._metrics import make_metrics
 
-# isort: split
-from brax import envs
+with jmb.quiet_upstream():  # MuJoCo's warp lines, where warp is not installed
+    from brax import envs
 
 
 class WrappedEnv(NamedTuple):
@@ -80,11 +80,12 @@ def make_env(config: PPOConfig) -> WrappedEnv:
       ValueError: for an unknown env name, an env whose observation is not a flat array,
         or more `devices` than there are local devices.
     """
-    try:
-        raw_env = envs.get_environment(config.env_name, backend=config.backend)
-        wrap = jmb.wrap
-    except KeyError:
-        raw_env, wrap = _playground_env(config.env_name)
+    with jmb.quiet_upstream():  # Brax's "not actively maintained" warning, on every build
+        try:
+            raw_env = envs.get_environment(config.env_name, backend=config.backend)
+            wrap = jmb.wrap
+        except KeyError:
+            raw_env, wrap = _playground_env(config.env_name)
     # Brax and MJX run under JAX's default promotion whatever the user's config; the
     # example's own code stays strict.
     with jmb.default_promotion():
