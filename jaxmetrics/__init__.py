@@ -6,15 +6,9 @@ Please don't use symbols from the private `_*` modules: everything public is re-
 from ._core._count import Count as Count
 from ._core._metrics import Metrics as Metrics
 from ._core._metrics_state import MetricsState as MetricsState
-from ._core._reductions import Discounted as Discounted
 from ._core._reductions import discounted as discounted
-from ._core._spec import Ema as Ema
-from ._core._spec import Groups as Groups
-from ._core._spec import Histogram as Histogram
 from ._core._spec import Logged as Logged
-from ._core._spec import Quantiles as Quantiles
 from ._core._spec import Term as Term
-from ._core._spec import Window as Window
 from ._core._spec import ema as ema
 from ._core._spec import groups as groups
 from ._core._spec import histogram as histogram
@@ -46,10 +40,6 @@ __all__ = [
     "ConsoleWriter",
     "ForeignFileError",
     "Count",
-    "Discounted",
-    "Ema",
-    "Groups",
-    "Histogram",
     "HistogramData",
     "History",
     "JsonlWriter",
@@ -61,14 +51,12 @@ __all__ = [
     "MetricsState",
     "NonFiniteError",
     "ReportsLostError",
-    "Quantiles",
     "Record",
     "TagInfo",
     "TensorBoardWriter",
     "Term",
     "Transition",
     "WandbWriter",
-    "Window",
     "Writer",
     "WriterError",
     "WriterTimeoutError",

@@ -230,3 +230,16 @@ def test_validation_helper_refuses_bools_and_accepts_numpy_ints():
     assert jm.window(np.int64(4)).size == 4 and type(jm.window(np.int64(4)).size) is int
     with pytest.raises(ValueError, match="window size must be a positive int"):
         jm.window(True)
+
+
+def test_one_public_name_per_concept_and_no_plumbing():
+    # A builder and its return type were both exported (`ema` and `Ema`, ...): one name per
+    # concept, as optax exports `adam` and not the state it builds.
+    import jaxmetrics.playground as jmp
+
+    for module in (jm, jmb, jmp):
+        names = list(module.__all__)
+        assert sorted(names) == sorted(n for n in vars(module) if n in names)
+        lower = [n.lower() for n in names]
+        assert len(set(lower)) == len(lower), sorted(n for n in names if lower.count(n.lower()) > 1)
+    assert not {"STATE_KEY", "norm"} & (set(jmb.__all__) | set(jmp.__all__))

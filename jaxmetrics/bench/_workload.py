@@ -17,6 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxmetrics as jm
+from jaxmetrics._core._reductions import Discounted
+from jaxmetrics._core._spec import Ema, Histogram, Window
 
 # Episode reduction of each of the 10 pattern terms; term i of N uses PATTERN[i % 10].
 PATTERN = ("sum", "sum", "mean", "std", "max", "min", "mean", "last", "mean", "mean")
@@ -71,17 +73,17 @@ def random_spec(
 
 def _trim(
     i: int, stats: tuple[Any, ...], features: str
-) -> tuple[str | jm.Discounted, tuple[Any, ...]]:
+) -> tuple[str | Discounted, tuple[Any, ...]]:
     """Pattern term `i`'s reduction and statistics, trimmed to `features`."""
     if features == "sum":
         return "sum", ("mean", "sum", "count")
     if features == "discounted_quantiles":
         simple = tuple(s for s in stats if isinstance(s, str))
-        if any(isinstance(s, jm.Histogram) for s in stats):
+        if any(isinstance(s, Histogram) for s in stats):
             simple += (jm.quantiles((50, 90, 99)),)
         return (jm.discounted(0.99) if PATTERN[i % 10] == "sum" else PATTERN[i % 10]), simple
     if features != "full":
-        keep = {"ema": jm.Ema, "window": jm.Window, "histogram": jm.Histogram}.get(features)
+        keep = {"ema": Ema, "window": Window, "histogram": Histogram}.get(features)
         stats = tuple(s for s in stats if isinstance(s, str) or (keep and isinstance(s, keep)))
     return PATTERN[i % 10], stats
 

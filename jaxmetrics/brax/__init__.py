@@ -17,12 +17,10 @@ from ._terms import control_effort as control_effort
 from ._terms import episode_length as episode_length
 from ._terms import episode_return as episode_return
 from ._terms import joint_velocity as joint_velocity
-from ._terms import norm as norm
 from ._terms import state_metrics as state_metrics
 from ._terms import success_rate as success_rate
 from ._terms import termination_rate as termination_rate
 from ._terms import truncation_rate as truncation_rate
-from ._wrapper import STATE_KEY as STATE_KEY
 from ._wrapper import MetricsWrapper as MetricsWrapper
 from ._wrapper import Transition as Transition
 from ._wrapper import metrics_state as metrics_state
@@ -30,7 +28,6 @@ from ._wrapper import replace_metrics_state as replace_metrics_state
 from ._wrapper import wrap as wrap
 
 __all__ = [
-    "STATE_KEY",
     "MetricsWrapper",
     "ProgressFn",
     "Transition",
@@ -40,7 +37,6 @@ __all__ = [
     "episode_return",
     "joint_velocity",
     "metrics_state",
-    "norm",
     "quiet_upstream",
     "replace_metrics_state",
     "state_metrics",

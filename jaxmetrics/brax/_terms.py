@@ -218,11 +218,8 @@ def norm(
       reduce: episode reduction.
       stats: report statistics.
 
-    Examples:
-      >>> import jaxmetrics.brax as jmb
-      >>> legs = jmb.norm(lambda t: t.state.pipeline_state.qvel, slice(6, None), reduce="max")
-      >>> legs.reduce
-      'max'
+    The builder behind `joint_velocity` and `control_effort`; a term of your own is a
+    `jm.Term` of `jnp.linalg.norm(...)`.
     """
     if not callable(get):
         raise TypeError(f"norm(get=...) must be a function of the Transition, got {get!r}.")

@@ -13,7 +13,6 @@ Importing this module imports `mujoco_playground`; `import jaxmetrics` does not.
 from ..brax import default_promotion as default_promotion  # first: before Brax
 
 # isort: split
-from ..brax import STATE_KEY as STATE_KEY
 from ..brax import MetricsWrapper as MetricsWrapper
 from ..brax import ProgressFn as ProgressFn
 from ..brax import Transition as Transition
@@ -21,7 +20,6 @@ from ..brax import control_effort as control_effort
 from ..brax import episode_length as episode_length
 from ..brax import episode_return as episode_return
 from ..brax import metrics_state as metrics_state
-from ..brax import norm as norm
 from ..brax import replace_metrics_state as replace_metrics_state
 from ..brax import state_metrics as state_metrics
 from ..brax import success_rate as success_rate
@@ -31,7 +29,6 @@ from ._terms import joint_velocity as joint_velocity
 from ._wrapper import wrap as wrap
 
 __all__ = [
-    "STATE_KEY",
     "MetricsWrapper",
     "ProgressFn",
     "Transition",
@@ -41,7 +38,6 @@ __all__ = [
     "episode_return",
     "joint_velocity",
     "metrics_state",
-    "norm",
     "replace_metrics_state",
     "state_metrics",
     "success_rate",

@@ -23,6 +23,7 @@ from reference import episode_values
 
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb
+from jaxmetrics.brax import _terms
 
 NUM_ENVS = 8
 STEPS = 60
@@ -589,7 +590,7 @@ def test_helper_argument_checks():
     flag = jmb.success_rate(lambda t: t.state.reward)
     with pytest.raises(TypeError, match="return a bool array"):
         flag.fn(fake_transition({}))
-    norm = jmb.norm(lambda t: t.state.reward)
+    norm = _terms.norm(lambda t: t.state.reward)
     with pytest.raises(ValueError, match=r"must be \[num_envs, D\]"):
         norm.fn(fake_transition({}))
 

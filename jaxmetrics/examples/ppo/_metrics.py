@@ -4,6 +4,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import jaxmetrics as jm
@@ -65,8 +66,9 @@ def make_metrics(
         terms.update(jmb.state_metrics(list(reward_components), reduce="sum"))
     if other_state_metrics:
         terms.update(jmb.state_metrics(list(other_state_metrics), reduce="mean"))
-    terms["joint_velocity"] = jmb.norm(
-        _qvel, stats=_term_stats(jm.window(100), jm.histogram(20, (0.0, 10.0)))
+    terms["joint_velocity"] = jm.Term(
+        lambda t: jnp.linalg.norm(_qvel(t), axis=-1),
+        stats=_term_stats(jm.window(100), jm.histogram(20, (0.0, 10.0))),
     )
     terms["control_effort"] = jmb.control_effort(
         stats=_term_stats(jm.window(100), jm.histogram(20, (0.0, float(np.sqrt(action_size)))))
