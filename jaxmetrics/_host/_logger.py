@@ -280,7 +280,8 @@ class Logger(AbstractContextManager):
           ReportsLostError: in-graph reports were lost since the last check (the host
             fell more than `report_slots` reports behind the device).
           RuntimeError: the logger is closed.
-          When it raises, the flush has done nothing (see the class docstring).
+
+        When it raises, the flush has done nothing (see the class docstring).
         """
         self._thread.check_open("flush")
         if is_traced(state):
