@@ -3,6 +3,7 @@
 Please don't use symbols from the private `_*` modules: everything public is re-exported here.
 """
 
+from ._columns import Report as Report
 from ._count import Count as Count
 from ._history import History as History
 from ._logger import Logger as Logger
@@ -63,6 +64,7 @@ __all__ = [
     "ReportsLostError",
     "Quantiles",
     "Record",
+    "Report",
     "TagInfo",
     "TensorBoardWriter",
     "Term",
