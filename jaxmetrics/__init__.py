@@ -7,6 +7,7 @@ from ._core._count import Count as Count
 from ._core._metrics import Metrics as Metrics
 from ._core._metrics_state import MetricsState as MetricsState
 from ._core._reductions import discounted as discounted
+from ._core._report import Report as Report
 from ._core._spec import Logged as Logged
 from ._core._spec import Term as Term
 from ._core._spec import ema as ema
@@ -52,6 +53,7 @@ __all__ = [
     "NonFiniteError",
     "ReportsLostError",
     "Record",
+    "Report",
     "TagInfo",
     "TensorBoardWriter",
     "Term",

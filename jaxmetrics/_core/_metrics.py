@@ -7,9 +7,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checkpoint, _count, _episode, _fresh, _inputs, _rows, _stream, _tags
+from . import _checkpoint, _count, _episode, _fresh, _inputs, _report, _rows, _stream, _tags
 from ._count import Count
 from ._metrics_state import MetricsState
+from ._report import Report, ReportLayout
 from ._sharding import like, shard_count, state_mesh
 from ._spec import Groups, Logged, MetricSpec, Term, reported
 from ._tags import TagInfo
@@ -93,6 +94,7 @@ class Metrics:
         self.prefixes = rows.prefixes
         self.dtype = rows.dtype
         self.tags: tuple[TagInfo, ...] = rows.tags
+        self._layouts: dict[bool, ReportLayout] = {}  # per include_running, see `compute`
 
     # ------------------------------------------------------------------ static views
 
@@ -505,10 +507,10 @@ class Metrics:
         cat = lambda x, y: jnp.concatenate([x, y], axis=0)  # noqa: E731
         return jax.tree.map(cat, fa, fb), jax.tree.map(cat, ea, eb)
 
-    def compute(
-        self, state: MetricsState, include_running: bool = False
-    ) -> dict[str, jax.Array | Count]:
-        """The report: tag -> small array (in-graph; O(metrics), not O(num_envs)).
+    def compute(self, state: MetricsState, include_running: bool = False) -> Report:
+        """The report: a `Report`, tag -> small array (in-graph; O(metrics), not
+        O(num_envs)). Its pytree leaves are one column per statistic, so that a jitted
+        `compute` has a few outputs whatever the number of metrics and groups.
 
         Counts (`/count`, `/nonfinite`, `/histogram`, counters) are exact `Count` pairs;
         `to_host` turns them into Python ints. Empty statistics are NaN.
@@ -519,7 +521,9 @@ class Metrics:
             running (unfinished) episodes' current values.
         """
         state = self._check_state(state, "compute")
-        out: dict[str, jax.Array | Count] = {}
+        # (group, statistic, rows, values): `values[j]` is row `rows[j]`'s statistic; a row
+        # is a stream row of the group's plan, an episode row, or a counter's index.
+        columns: list[tuple[str, str, tuple[int, ...], jax.Array | Count]] = []
         finished = None
         if self._rows.ep_plan is not None:
             finished = _stream.combine(self._rows.ep_plan, state.finished)  # type: ignore[arg-type]
@@ -527,37 +531,62 @@ class Metrics:
             ("episode", self._rows.ep_plan, finished),
             ("logged", self._rows.lg_plan, state.logged),
         ):
-            if plan is None:
-                continue
-            rows = _stream.compute(plan, st)
-            for i, spec in enumerate(plan.rows):
-                for stat in reported(spec.stats):
-                    out[_tags.tag(self.prefixes[group], spec.name, stat)] = rows[i][stat]
+            if plan is not None:
+                columns += [(group, *column) for column in _stream.compute(plan, st)]
         if include_running and state.running is not None:
             run = _episode.running(self._rows.episode_plan, state.running)
             has = ~jnp.isnan(run)
             n = jnp.sum(has, axis=1)
             mean = jnp.sum(jnp.where(has, run, 0), axis=1) / jnp.maximum(n, 1).astype(self.dtype)
             mean = jnp.where(n > 0, mean, jnp.nan)
-            for i, spec in enumerate(self._rows.ep_rows):
-                out[_tags.tag(self.prefixes["episode"], spec.name, "running")] = mean[i]
-        shard_totals = _count.total(state.shard_counts) if state.shard_counts is not None else None
-        for c in self.counter_names:
-            if c in self._rows.shard_counters:
-                j = self._rows.shard_counters.index(c)
-                value = Count(shard_totals.hi[j], shard_totals.lo[j])  # type: ignore[union-attr]
-            else:
-                assert state.counters is not None
-                j = self._rows.stored_counters.index(c)
-                value = Count(state.counters.hi[j], state.counters.lo[j])
-            out[_tags.tag(self._rows.counter_prefix, c, "total")] = value
-        return out
+            columns.append(("running", "running", tuple(range(len(self._rows.ep_rows))), mean))
+        names = self.counter_names
+        if state.shard_counts is not None:
+            rows = tuple(names.index(c) for c in self._rows.shard_counters)
+            columns.append(("counter", "total", rows, _count.total(state.shard_counts)))
+        if state.counters is not None:
+            rows = tuple(names.index(c) for c in self._rows.stored_counters)
+            columns.append(("counter", "total", rows, state.counters))
+        layout = self._report_layout(include_running, columns)
+        return Report(layout, tuple(values for *_, values in columns))
+
+    def _report_layout(
+        self, include_running: bool, columns: list[tuple[str, str, tuple[int, ...], Any]]
+    ) -> ReportLayout:
+        """Where `compute`'s tags lie in its `columns` (built on the host, once per
+        `include_running`: the columns' structure is the spec's). Tags come in the order
+        of the stream rows, each row's reported statistics in registry order, then the
+        running values and the counters."""
+        if include_running in self._layouts:
+            return self._layouts[include_running]
+        where = {
+            (group, stat, i): (c, j)
+            for c, (group, stat, rows, _) in enumerate(columns)
+            for j, i in enumerate(rows)
+        }
+        at: dict[str, tuple[int, int]] = {}
+        for group, plan in (("episode", self._rows.ep_plan), ("logged", self._rows.lg_plan)):
+            for i, spec in enumerate(plan.rows if plan is not None else ()):
+                for stat in reported(spec.stats):
+                    at[_tags.tag(self.prefixes[group], spec.name, stat)] = where[group, stat, i]
+        for i, spec in enumerate(self._rows.ep_rows if include_running else ()):
+            at[_tags.tag(self.prefixes["episode"], spec.name, "running")] = where[
+                "running", "running", i
+            ]
+        for i, c in enumerate(self.counter_names):
+            at[_tags.tag(self._rows.counter_prefix, c, "total")] = where["counter", "total", i]
+        trailing = tuple(jax.tree.leaves(v)[0].ndim - 1 for *_, v in columns)
+        layout = ReportLayout((self.config_id, include_running), tuple(at), at, trailing)
+        self._layouts[include_running] = layout
+        return layout
 
     # ------------------------------------------------------------------ host side
 
     def to_host(self, report: Mapping[str, Any]) -> dict[str, Any]:
         """Host side: fetches a report; scalars become floats, counts exact Python ints,
         histograms and window values numpy arrays."""
+        if isinstance(report, Report):
+            return _report.to_host(jax.device_get(report))
         fetched = jax.device_get(dict(report))
         out: dict[str, Any] = {}
         for k, v in fetched.items():

@@ -125,9 +125,13 @@ def _exact_rank(p: jax.Array, m: jax.Array) -> jax.Array:
     return p * a + 16 * (u // 15625) + (1024 * (u % 15625) + v) // _GRID
 
 
-def quantiles(g: SketchGroup, counts: Count, levels: tuple[tuple[float, ...], ...], dt):
-    """Per row of the group, the value at each of its levels (percentiles): the
-    representative of the slot holding the value of rank `floor(p/100 (n-1))`.
+def quantiles(
+    g: SketchGroup, counts: Count, levels: tuple[tuple[float, ...], ...], dt
+) -> jax.Array:
+    """`[rows, L]`: per row of the group, the value at each of its levels (percentiles),
+    level `k` of row `j` at `[j, k]` (`L` the most levels of a row; a row's slots past its
+    own levels hold nothing to read). The value is the representative of the slot holding
+    the value of rank `floor(p/100 (n-1))`.
 
     Ranks are exact up to 2^32 values per period (uint32 arithmetic); beyond, they are
     rounded to float32 (2^-24 of the rank). NaN for an empty period, a period with a NaN
@@ -135,25 +139,26 @@ def quantiles(g: SketchGroup, counts: Count, levels: tuple[tuple[float, ...], ..
     """
     merge = lambda x, y: (x[0] + y[0] + (x[1] + y[1] < x[1]).astype(jnp.uint32), x[1] + y[1])  # noqa: E731
     cum_hi, cum_lo = jax.lax.associative_scan(merge, (counts.hi, counts.lo), axis=1)
-    n_hi, n_lo = cum_hi[:, -1], cum_lo[:, -1]
+    n_hi, n_lo = cum_hi[:, -1:], cum_lo[:, -1:]
     m_lo = n_lo - jnp.uint32(1)
     m_hi = n_hi - (n_lo == 0).astype(jnp.uint32)
     empty = (n_hi == 0) & (n_lo == 0)
-    has_nan = (counts.hi[:, -1] > 0) | (counts.lo[:, -1] > 0)
+    has_nan = (counts.hi[:, -1:] > 0) | (counts.lo[:, -1:] > 0)
     reps = jnp.asarray(tables(g.accuracy, jnp.dtype(dt).name)["reps"], dt)
-    out = []
-    for j, ps in enumerate(levels):
-        p = jnp.asarray([round(x * _GRID / 100) for x in ps], jnp.uint32)
-        big = m_hi[j] > 0
-        # Past 2^32 values: the rank from a float32 product, split into two words.
-        m = m_hi[j].astype(jnp.float32) * 2.0**32 + m_lo[j].astype(jnp.float32)
-        approx = jnp.floor(p.astype(jnp.float32) / _GRID * m)
-        approx_hi = jnp.floor(approx / 2.0**32)
-        k_hi = jnp.where(big, approx_hi.astype(jnp.uint32), jnp.uint32(0))
-        approx_lo = (approx - approx_hi * 2.0**32).astype(jnp.uint32)
-        k_lo = jnp.where(big, approx_lo, _exact_rank(p, m_lo[j]))
-        ch, cl = cum_hi[j][None, :], cum_lo[j][None, :]
-        above = (ch > k_hi[:, None]) | ((ch == k_hi[:, None]) & (cl > k_lo[:, None]))
-        value = reps[jnp.argmax(above, axis=1)]
-        out.append(jnp.where(empty[j] | has_nan[j], jnp.nan, value))
-    return out
+    # Every row's levels as one [rows, L] array, so that the ops do not grow with the
+    # rows (a grouped metric has one per group); short rows are padded with level 0.
+    width = max(len(ps) for ps in levels)
+    grid = [[round(x * _GRID / 100) for x in ps] + [0] * (width - len(ps)) for ps in levels]
+    p = jnp.asarray(np.array(grid, np.uint32))
+    big = m_hi > 0
+    # Past 2^32 values: the rank from a float32 product, split into two words.
+    m = m_hi.astype(jnp.float32) * 2.0**32 + m_lo.astype(jnp.float32)
+    approx = jnp.floor(p.astype(jnp.float32) / _GRID * m)
+    approx_hi = jnp.floor(approx / 2.0**32)
+    k_hi = jnp.where(big, approx_hi.astype(jnp.uint32), jnp.uint32(0))
+    approx_lo = (approx - approx_hi * 2.0**32).astype(jnp.uint32)
+    k_lo = jnp.where(big, approx_lo, _exact_rank(p, m_lo))
+    ch, cl = cum_hi[:, None, :], cum_lo[:, None, :]
+    above = (ch > k_hi[..., None]) | ((ch == k_hi[..., None]) & (cl > k_lo[..., None]))
+    value = reps[jnp.argmax(above, axis=2)]
+    return jnp.where(empty | has_nan, jnp.nan, value)

@@ -5,6 +5,7 @@ import gc
 import inspect
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -424,6 +425,47 @@ def test_a_joined_report_parts_into_its_floats_and_counts_bit_for_bit(dtype):
     want = np.stack([np.asarray(floats), -np.asarray(floats)])
     assert f.tobytes() == want.tobytes()
     assert (c == np.asarray(counts)).all()
+
+
+def _grouped(n: int) -> jm.Metrics:
+    return jm.Metrics(
+        terms={"r": jm.Term(lambda s: s["x"], stats=("mean", "std", "count"))},
+        groups=jm.groups(lambda s: s["g"], tuple(f"g{i}" for i in range(n))),
+    )
+
+
+def test_the_report_program_does_not_grow_with_the_groups():
+    """The flush packs the report's columns (a gather per run of tags), not a slice per
+    tag: one per group and statistic made the first flush take minutes."""
+    from jaxmetrics import _programs
+
+    def ops(n):
+        m = _grouped(n)
+        compute = _programs.report_programs(m, 1, False).compute
+        return len(re.findall(r"\bstablehlo\.\w+", jax.jit(compute).lower(m.init(4)).as_text()))
+
+    assert ops(1000) == ops(10)
+
+
+def test_a_flush_of_thousands_of_groups_records_each_group():
+    n = 2000
+    m = _grouped(n)
+    k = np.arange(n) % (n // 2)  # even groups get the envs k and k + n/2, odd ones none
+    x = np.arange(n, dtype=np.float32)
+    update = jax.jit(m.update)  # op by op, a step's few hundred ops compile one by one
+    state = update(m.init(n), {"x": x, "g": jnp.asarray(2 * k, jnp.int32)}, jnp.ones(n, bool))
+    writer = jm.MemoryWriter()
+    with jm.Logger(m, [writer]) as logger:
+        logger.flush(state, step=1)
+    (rec,) = writer.records
+    for g in range(0, n, 2):
+        tag = f"Episode_Metrics/r/g{g}"
+        assert rec.scalars[tag] == pytest.approx(g // 2 + n / 4, rel=1e-6), tag
+        assert rec.scalars[f"{tag}/std"] == pytest.approx(n / 4, rel=1e-6), tag
+        assert rec.scalars[f"{tag}/count"] == 2, tag
+    for g in range(1, n, 2):
+        tag = f"Episode_Metrics/r/g{g}"
+        assert tag not in rec.scalars and rec.scalars[f"{tag}/count"] == 0, tag
 
 
 def test_a_flush_hands_back_the_carried_fields_themselves_and_fresh_period_statistics():

@@ -1,6 +1,4 @@
-"""The report statistics of a stream, per row, as `_statistics` names them."""
-
-import operator
+"""The report statistics of a stream, as columns over its rows, as `_statistics` names them."""
 
 import jax
 import jax.numpy as jnp
@@ -14,9 +12,7 @@ from ._state import (
     StreamState,
     WindowGroup,
     ordered,
-    take_rows,
     weight_dtype,
-    window_ring,
 )
 
 
@@ -38,8 +34,14 @@ def _percentiles(sorted_vals: jax.Array, filled: jax.Array, ps: tuple[float, ...
     return out
 
 
-def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Count]]:
-    """Per row, a dict of every statistic it has; empty-period values are NaN.
+Column = tuple[str, tuple[int, ...], jax.Array | Count]
+"""A statistic over the rows that have it: `(name, rows, values)`, `values[j]` (its first
+axis) being row `rows[j]`'s."""
+
+
+def compute(plan: StreamPlan, s: StreamState) -> list[Column]:
+    """Every statistic of every row, as columns (a row's statistics are those of the
+    columns that list it); empty-period values are NaN.
 
     A row whose metric leaves non-finite values out (any policy but "propagate") also
     counts in its `nonfinite` the reported statistics that overflowed the dtype (which
@@ -52,10 +54,10 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
     n = _count.as_float(s.count, weight_dtype(dt))
     empty = n == 0
     var = jnp.maximum(s.m2 - s.m2_c, 0).astype(n.dtype) / jnp.maximum(n, 1)
-    # Each statistic as one column over the rows that have it (`rows[j]` holds
-    # `values[j]`), so that the report and its overflow count are a few vector ops
-    # whatever the number of rows: per-row scalar ops were hundreds of kernels.
-    columns: list[tuple[str, tuple[int, ...], jax.Array | Count]] = [
+    # Each statistic is one column over the rows that have it, whatever their number:
+    # per-row scalar ops were hundreds of kernels, and per-row outputs (a grouped metric
+    # has a row per group) made compile time grow faster than the rows.
+    columns: list[Column] = [
         ("mean", every, jnp.where(empty, jnp.nan, s.mean)),
         ("std", every, jnp.where(empty, jnp.nan, jnp.sqrt(var).astype(dt))),
         ("min", every, jnp.where(empty, jnp.nan, s.min)),
@@ -64,30 +66,35 @@ def compute(plan: StreamPlan, s: StreamState) -> list[dict[str, jax.Array | Coun
     ]
     if plan.ema_rows:
         ema = jnp.where(s.ema_w > 0, s.ema_off + s.ema, jnp.nan)
-        columns.append(("ema", plan.ema_rows, take_rows(plan.ema_rows, ema)))
+        columns.append(("ema", plan.ema_rows, _gathered(plan.ema_rows, ema)))
     for g, w in zip(plan.windows, s.windows):
-        columns += _window_columns(plan, g, window_ring(g, w), take_rows(g.rows, s.steps))
+        ring = w._replace(pos=_gathered(g.rows, w.pos), filled=_gathered(g.rows, w.filled))
+        columns += _window_columns(plan, g, ring, _gathered(g.rows, s.steps))
     for g, h in zip(plan.hists, s.hists):
         columns.append(("histogram", g.rows, h))
     for g, c in zip(plan.sketches, s.sketches):
         levels = tuple(plan.rows[i].stats.quantiles.levels for i in g.rows)  # type: ignore[union-attr]
-        for i, ls, vals in zip(g.rows, levels, _sketch.quantiles(g, c, levels, dt)):
-            columns += [(_statistics.quantile(p), (i,), vals[j][None]) for j, p in enumerate(ls)]
+        values = _sketch.quantiles(g, c, levels, dt)
+        for p in sorted({p for ls in levels for p in ls}):
+            at = [(j, ls.index(p)) for j, ls in enumerate(levels) if p in ls]
+            rows = tuple(g.rows[j] for j, _ in at)
+            column = values[np.array([j for j, _ in at]), np.array([k for _, k in at])]
+            columns.append((_statistics.quantile(p), rows, column))
     overflows = Count(jnp.zeros_like(s.count.lo), _overflows(plan, s, columns))
     nonfinite = _count.merge(s.nonfinite, overflows)
-    out: list[dict[str, jax.Array | Count]] = [{} for _ in every]
-    for i in every:
-        out[i]["count"] = Count(s.count.hi[i], s.count.lo[i])
-        out[i]["nonfinite"] = Count(nonfinite.hi[i], nonfinite.lo[i])
-    for name, rows, values in columns:
-        for j, i in enumerate(rows):
-            out[i][name] = jax.tree.map(operator.itemgetter(j), values)
-    return out
+    return [("count", every, s.count), ("nonfinite", every, nonfinite), *columns]
 
 
-def _window_columns(
-    plan: StreamPlan, g: WindowGroup, w: Ring, steps: jax.Array
-) -> list[tuple[str, tuple[int, ...], jax.Array]]:
+def _gathered(rows: tuple[int, ...], x: jax.Array) -> jax.Array:
+    """Rows `rows` of `x` by one gather of static indices. (`take_rows` slices each row,
+    which keeps an env axis' sharding unambiguous in a step; a report's arrays have no
+    env axis, and a slice per row is an op per row.)"""
+    if rows == tuple(range(x.shape[0])):
+        return x
+    return x[np.asarray(rows, np.int32)]
+
+
+def _window_columns(plan: StreamPlan, g: WindowGroup, w: Ring, steps: jax.Array) -> list[Column]:
     """A window group's statistics as `compute`'s columns, from its ring `w` (its rows
     only) and their arrival steps `steps`."""
     dt = plan.dtype
@@ -105,7 +112,7 @@ def _window_columns(
     wmin = jnp.min(jnp.where(valid, vals, jnp.inf), axis=1)
     wmax = jnp.max(jnp.where(valid, vals, -jnp.inf), axis=1)
     has = filled > 0
-    columns = [
+    columns: list[Column] = [
         ("window_mean", g.rows, jnp.where(has, wmean, jnp.nan)),
         ("window_std", g.rows, jnp.where(has, wstd, jnp.nan)),
         ("window_min", g.rows, jnp.where(has, wmin, jnp.nan)),
@@ -121,7 +128,7 @@ def _window_columns(
             at = tuple(j for j, ps in enumerate(wanted) if p in ps)
             v = jnp.where(has_nan, jnp.nan, v)
             rows = tuple(g.rows[j] for j in at)
-            columns.append((_statistics.percentile(p), rows, take_rows(at, v)))
+            columns.append((_statistics.percentile(p), rows, _gathered(at, v)))
     return columns
 
 
@@ -130,6 +137,7 @@ def _overflows(plan: StreamPlan, s: StreamState, columns) -> jax.Array:
     dtype, 0 for the rows of metrics that propagate non-finite values. A statistic the
     metric does not report (a row always has a std and a sum) is no loss."""
     r = len(plan.rows)
+    every = tuple(range(r))
     has = ~_count.is_zero(s.count)
     reported = [set(_spec.reported(spec.stats)) for spec in plan.rows]
     bad = jnp.zeros((r,), jnp.uint32)
@@ -137,11 +145,14 @@ def _overflows(plan: StreamPlan, s: StreamState, columns) -> jax.Array:
         kind = _statistics.get(name).overflow
         if kind is None:
             continue
-        flags = jnp.isinf(values) if kind == "inf" else take_rows(rows, has) & ~jnp.isfinite(values)
+        flags = jnp.isinf(values) if kind == "inf" else _gathered(rows, has) & ~jnp.isfinite(values)
         flags = flags & np.array([name in reported[i] for i in rows])
-        # Spread over the rows (0 where a row lacks the statistic) by a static gather.
-        at = np.full(r, len(rows))
-        at[list(rows)] = np.arange(len(rows))
-        bad = bad + jnp.concatenate([flags, jnp.zeros((1,), bool)])[at].astype(jnp.uint32)
+        if rows != every:
+            # Spread over the rows (0 where a row lacks the statistic) by a static gather;
+            # a column of every row is spread already.
+            at = np.full(r, len(rows))
+            at[list(rows)] = np.arange(len(rows))
+            flags = jnp.concatenate([flags, jnp.zeros((1,), bool)])[at]
+        bad = bad + flags.astype(jnp.uint32)
     counted = np.array([spec.nonfinite != "propagate" for spec in plan.rows])
     return jnp.where(counted, bad, jnp.uint32(0))
