@@ -26,9 +26,7 @@ def fresh(rows: SpecRows, num_envs: int, shards: int, ema_history: bool = False)
         finished=jax.tree.map(per_shard, _stream.init(ep_plan, ema_history or shards > 1))
         if has_ep
         else None,
-        shard_counts=_count.zeros(
-            (shards, _stream.counts_width(ep_plan, len(rows.shard_counters)))
-        )
+        shard_counts=_count.zeros((shards, _stream.counts_width(ep_plan, len(rows.shard_counters))))
         if has_ep
         else None,
         logged=_stream.init(rows.lg_plan) if rows.lg_plan else None,
