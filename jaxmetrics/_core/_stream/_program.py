@@ -5,7 +5,8 @@ Its inputs are `fold`'s, in its order; `Table` is the layout of the row's static
 """
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -274,7 +275,18 @@ def program(
         ]
         finish = _update.row_updater(ins, update_out, shift, step_ref[...], emas, windows, r)
 
-    def write(xsum, xmin, xmax, p, s1, s2, wsum, total, nbad, csums):
+    def write(
+        xsum: jax.Array,
+        xmin: jax.Array,
+        xmax: jax.Array,
+        p: jax.Array,
+        s1: jax.Array,
+        s2: jax.Array,
+        wsum: jax.Array,
+        total: jax.Array,
+        nbad: jax.Array,
+        csums: Sequence[jax.Array],
+    ) -> None:
         k = jnp.maximum(total, 1).astype(jnp.float32)
         mean_dev, m2 = p + s1 / k, jnp.maximum(s2 - s1 * s1 / k, 0)
         floats[:, 0:1] = xsum
@@ -354,7 +366,9 @@ def program(
 
         jax.lax.cond(length <= chunk, one_block, lambda: blocks_of(chunk))
 
-    def fold_blocks(blocks, values_of, flags=None):
+    def fold_blocks(
+        blocks: Callable[..., Any], values_of: Callable[[], Any], flags: jax.Array | None = None
+    ) -> None:
         """The row's statistics folded over its blocks: `blocks(body, init, xs, *extra)`
         folds `body` over them, with each block's values from `xs` (`values_of()`);
         `flags`: the row's non-finite flags, where its blocks have none."""
@@ -402,7 +416,9 @@ def program(
                 pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
             ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))
 
-        def second(on, bad, *rest):
+        def second(
+            on: jax.Array, bad: jax.Array, *rest: Any
+        ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
             *_, x, p, acc = rest
             before, s1, s2, wsum = acc
             m = on.astype(jnp.int32)

@@ -317,7 +317,7 @@ def row_updater(
     ema: tuple[jax.Array, jax.Array, jax.Array, jax.Array] | None,
     windows: Sequence[tuple[int, jax.Array, jax.Array]],
     row: jax.Array,
-) -> Callable[[Batch, list], None]:
+) -> Callable[[Batch, Sequence[jax.Array]], None]:
     """Inside the fused kernel, by the program of row `row` (which folds the whole row):
     the row's fields read from `ins` now, so that the reads overlap the fold, and what
     then updates them (`update`) with the batch's statistics (`Batch`) and the sums of its
@@ -359,7 +359,7 @@ def row_updater(
     counted = [(pl.ds(p, 1), pl.ds(row, 1)) for p in range(ins[0].shape[0])] if ins else []
     counts = [Count(ins[0][at], ins[1][at]) for at in counted]
 
-    def finish(b: Batch, csums: list) -> None:
+    def finish(b: Batch, csums: Sequence[jax.Array]) -> None:
         written = _written(update(f, b, shift, rows, jnp.float32), ema is not None)
         for out, value in zip(outs, written):
             out[...] = value
