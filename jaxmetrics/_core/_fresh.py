@@ -14,7 +14,8 @@ def fresh(rows: SpecRows, num_envs: int, shards: int, ema_history: bool = False)
     """A zero state of `num_envs` envs in `shards` env shards; `ema_history` keeps each EMA
     row's newest values even with one shard, for a state that will be merged with other
     devices' (one per device under `pmap`), as a sharded state keeps them."""
-    has_ep = rows.ep_plan is not None
+    ep_plan = rows.ep_plan
+    has_ep = ep_plan is not None
     n_counters = len(rows.stored_counters)
 
     def per_shard(x: jax.Array) -> jax.Array:
@@ -22,12 +23,10 @@ def fresh(rows: SpecRows, num_envs: int, shards: int, ema_history: bool = False)
 
     return MetricsState(
         running=_episode.init(rows.episode_plan, num_envs) if has_ep else None,
-        finished=jax.tree.map(per_shard, _stream.init(rows.ep_plan, ema_history or shards > 1))
+        finished=jax.tree.map(per_shard, _stream.init(ep_plan, ema_history or shards > 1))
         if has_ep
         else None,
-        shard_counts=_count.zeros(
-            (shards, _stream.counts_width(rows.ep_plan, len(rows.shard_counters)))
-        )
+        shard_counts=_count.zeros((shards, _stream.counts_width(ep_plan, len(rows.shard_counters))))
         if has_ep
         else None,
         logged=_stream.init(rows.lg_plan) if rows.lg_plan else None,

@@ -5,6 +5,7 @@ from collections.abc import Mapping
 from typing import Any, NamedTuple
 
 import jax
+import jax.core  # jax.core.Tracer: imported by jax, named here for the type checker
 import jax.numpy as jnp
 import numpy as np
 
@@ -38,7 +39,8 @@ def as_array(v: Any, what: str) -> jax.Array:
             ) from None
         if host.dtype.kind in "USVMm":
             raise TypeError(f"{what}: got {v!r} (numpy dtype {host.dtype}); {fix}.")
-        if host.dtype.kind in "iuO" and not jax.config.jax_enable_x64:
+        # Config options are attributes set at run time.
+        if host.dtype.kind in "iuO" and not jax.config.jax_enable_x64:  # pyright: ignore[reportAttributeAccessIssue]
             try:
                 host = host.astype(np.float64)
             except (TypeError, ValueError):

@@ -354,7 +354,10 @@ class Metrics:
         counted = jnp.stack([c.astype(narrow) for c in shard_counts])
 
         def fold(st, b, t, e, g):
-            segments = None if g is None else (segments_plan, g)
+            segments = None
+            if g is not None:
+                assert segments_plan is not None  # `g`: the segment sources' batch
+                segments = (segments_plan, g)
             return _stream.add_with_counts(plan, st, b, t, e, fused=shards == 1, segments=segments)
 
         args = (
@@ -445,13 +448,15 @@ class Metrics:
         running episodes carry on."""
         state = self._check_state(state, "reset_period")
         plan = self._rows.ep_plan
+        logged = None
+        if self._rows.lg_plan:
+            assert state.logged is not None  # a state of this spec has logged rows
+            logged = _stream.reset_period(self._rows.lg_plan, state.logged)
         return state._replace(
             finished=jax.vmap(lambda st: _stream.reset_period(plan, st))(state.finished)
             if plan
             else None,
-            logged=_stream.reset_period(self._rows.lg_plan, state.logged)
-            if self._rows.lg_plan
-            else None,
+            logged=logged,
         )
 
     def merge(self, a: MetricsState, b: MetricsState) -> MetricsState:
@@ -472,16 +477,20 @@ class Metrics:
         finished, counts = None, None
         if self._rows.ep_plan is not None:
             finished, counts = self._merge_shards(a, b)
+        logged = None
+        if self._rows.lg_plan is not None:
+            assert a.logged is not None and b.logged is not None  # states of this spec
+            logged = _stream.merge(self._rows.lg_plan, a.logged, b.logged)
         return MetricsState(
             running=None
             if a.running is None
             else jax.tree.map(lambda x, y: jnp.concatenate([x, y], axis=-1), a.running, b.running),
             finished=finished,
             shard_counts=counts,
-            logged=None
-            if self._rows.lg_plan is None
-            else _stream.merge(self._rows.lg_plan, a.logged, b.logged),
-            counters=None if a.counters is None else _count.merge(a.counters, b.counters),
+            logged=logged,
+            counters=None
+            if a.counters is None or b.counters is None  # both or neither: one spec
+            else _count.merge(a.counters, b.counters),
             spec=self._spec,
         )
 
@@ -494,6 +503,7 @@ class Metrics:
         per_a = a.running.steps.shape[-1] // sa  # type: ignore[union-attr]
         per_b = b.running.steps.shape[-1] // sb  # type: ignore[union-attr]
         fa, fb, ea, eb = a.finished, b.finished, a.shard_counts, b.shard_counts
+        assert fa is not None and fb is not None  # with shard counts
         if per_a != per_b:
             # Shards of different sizes cannot stay blocks of one env axis: one shard.
             one = _stream.merge(plan, _stream.combine(plan, fa), _stream.combine(plan, fb))
@@ -531,8 +541,10 @@ class Metrics:
             ("episode", self._rows.ep_plan, finished),
             ("logged", self._rows.lg_plan, state.logged),
         ):
-            if plan is not None:
-                columns += [(group, *column) for column in _stream.compute(plan, st)]
+            if plan is None:
+                continue
+            assert st is not None  # a state of this spec has the plan's rows
+            columns += [(group, *column) for column in _stream.compute(plan, st)]
         if include_running and state.running is not None:
             run = _episode.running(self._rows.episode_plan, state.running)
             has = ~jnp.isnan(run)

@@ -29,7 +29,7 @@ class MetricsState(NamedTuple):
 
 
 @functools.cache
-def spec_id(fingerprint: str) -> tuple:
+def spec_id(fingerprint: str) -> NamedTuple:
     """The identity of the spec with this configuration fingerprint: a namedtuple whose
     one field is named after the fingerprint and holds None.
 

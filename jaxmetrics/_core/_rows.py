@@ -4,7 +4,7 @@ stream plans, tags and the spec's identity (`SpecRows`), built once per spec."""
 import dataclasses
 import hashlib
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from typing import Any, NamedTuple, cast
 
 import jax.numpy as jnp
 import numpy as np
@@ -57,7 +57,7 @@ class SpecRows:
     ep_propagate: np.ndarray  # per episode row: its nonfinite policy is "propagate"
     lg_propagate: np.ndarray
     tags: tuple[TagInfo, ...]
-    identity: tuple  # `spec_id` of the configuration
+    identity: NamedTuple  # `spec_id` of the configuration
 
 
 def build(
@@ -86,7 +86,7 @@ def build(
         )
     if groups is not None and not isinstance(groups, Groups):
         raise TypeError(f"Metrics(groups=...) takes jaxmetrics.groups(fn, names), got {groups!r}.")
-    terms, ep_specs, ep_groupings = _flatten_terms(terms or {}, nonfinite, groups)
+    flat_terms, ep_specs, ep_groupings = _flatten_terms(terms or {}, nonfinite, groups)
     # Distinct groupings (each evaluated once per step), with the first term using it.
     groupings: tuple[Groups, ...] = ()
     grouping_terms: tuple[str, ...] = ()
@@ -119,7 +119,10 @@ def build(
     # Episode rows sorted by reduction (stable): each reduction is one block.
     order = sorted(
         range(len(ep_specs)),
-        key=lambda i: _episode.ORDER.index(_reductions.name(ep_specs[i].reduce)),
+        # An episode metric's reduce is set (None only for logged values).
+        key=lambda i: _episode.ORDER.index(
+            _reductions.name(cast(str | _reductions.Discounted, ep_specs[i].reduce))
+        ),
     )
     ep_rows = tuple(ep_specs[i] for i in order)
     # Per episode row, the index of its grouping in groupings (None: ungrouped).
@@ -142,6 +145,7 @@ def build(
         names = () if k is None else groupings[k].names
         segmented = k is not None and _period_only(ep_rows[r])
         if segmented:
+            assert k is not None
             sources.append((r, k))
             blocks.append((row + 1, len(names)))
         for (src, kind, group), n in (
@@ -154,7 +158,10 @@ def build(
         row += 1 + len(names)
     every_row = tuple(np.asarray(a, np.int32) for a in every)
     report_rows = tuple(np.asarray(a, np.int32) for a in as_rows)
-    episode_plan = _episode.EpisodePlan.build([s.reduce for s in ep_rows], dt)
+    assert len(every_row) == 3 and len(report_rows) == 3
+    # An episode metric's reduce is set (None only for logged values).
+    reductions = [cast(str | _reductions.Discounted, s.reduce) for s in ep_rows]
+    episode_plan = _episode.EpisodePlan.build(reductions, dt)
     ep_plan = _stream.StreamPlan.build(stream_rows, dt) if ep_specs else None
     ep_segments = None
     if blocks:
@@ -178,7 +185,7 @@ def build(
     canon = repr(_canonical((config, dt.name, STATE_FORMAT))).encode()
     spec = spec_id(hashlib.sha256(canon).hexdigest())
     return SpecRows(
-        terms=tuple(terms),
+        terms=tuple(flat_terms),
         groupings=groupings,
         grouping_terms=grouping_terms,
         counter_names=counter_names,
@@ -269,7 +276,8 @@ def _flatten_terms(
                     f"{where}: reduce names unknown outputs {sorted(extra)}; outputs are "
                     f"{list(outputs)}."
                 )
-            reduces = {o: t.reduce.get(o, "mean") for o in outputs}
+            # `outputs` are the names here (`t.outputs` is set).
+            reduces = {o: t.reduce.get(cast(str, o), "mean") for o in outputs}
         else:
             reduces = {o: t.reduce for o in outputs}
         reduces = {o: _reductions.check(r, where) for o, r in reduces.items()}

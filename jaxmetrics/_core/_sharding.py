@@ -33,6 +33,7 @@ def mesh_of(tree: Any) -> jax.sharding.Mesh | None:
     for leaf in jax.tree.leaves(tree):
         sharding = getattr(leaf, "sharding", None)
         if isinstance(sharding, jax.sharding.NamedSharding) and sharding.mesh.size > 1:
+            assert isinstance(sharding.mesh, jax.sharding.Mesh)  # a concrete array's
             return sharding.mesh
     return None
 

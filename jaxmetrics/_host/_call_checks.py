@@ -6,6 +6,7 @@ They run before a call acts, so that a call that raises has done nothing.
 from typing import Any
 
 import jax
+import jax.core  # jax.core.Tracer: imported by jax, named here for the type checker
 import jax.numpy as jnp
 
 from .._core._metrics_state import MetricsState

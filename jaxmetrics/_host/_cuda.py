@@ -174,6 +174,7 @@ class Driver:
             finally:
                 self._lib.cuCtxPopCurrent_v2(ctypes.byref(ctypes.c_void_p()))
         self._check(rc, "cuMemHostAlloc")
+        assert ptr.value is not None  # allocated
         ctypes.memset(ptr.value, 0, nbytes)
         return int(ptr.value or 0)
 

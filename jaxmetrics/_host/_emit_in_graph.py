@@ -20,6 +20,8 @@ import jax
 import jax.numpy as jnp
 from jax import custom_batching
 
+from .._core._count import Count
+
 _NEEDS_RUN = (
     "emit under vmap sends each batch element to its own run, so `run` must be batched "
     "along the same axis as the state: create Logger(..., runs=N) and call "
@@ -56,7 +58,7 @@ class InGraphEmit:
         self._runs_by_position = runs_by_position
         self._levels: dict[int, Callable[..., Any]] = {}
 
-    def __call__(self, state: Any, step: jax.Array, when: jax.Array, run: jax.Array) -> Any:
+    def __call__(self, state: Any, step: jax.Array | Count, when: jax.Array, run: jax.Array) -> Any:
         return self._level(0)(state, step, when, run)
 
     def _level(self, nd: int) -> Callable[..., Any]:

@@ -41,9 +41,11 @@ def make_writers(writers: WritersArg, runs: int, writes: bool) -> list[list[Writ
     factory = callable(writers) and not isinstance(writers, Writer)
     if not writes:
         if not factory:
+            assert isinstance(writers, Writer) or not callable(writers)
             close_quietly(writers if isinstance(writers, Writer) else list(writers))
         return [[] for _ in range(runs)]
     if factory:
+        assert callable(writers)
         made: list[Any] = []
         try:
             for r in range(runs):

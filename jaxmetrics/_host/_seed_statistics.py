@@ -67,6 +67,7 @@ def summarize(values: Sequence[float]) -> dict[str, float | int]:
         return {}
     mean = float(np.mean(x))
     out: dict[str, float | int] = {"seeds_mean": mean}
+    half = 0.0  # set, and read, where n > 1
     if n > 1:
         from scipy.special import stdtrit  # the Student t quantile; scipy comes with jax
 

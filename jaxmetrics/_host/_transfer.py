@@ -102,7 +102,7 @@ class Packer:
         bits = jax.lax.bitcast_convert_type(floats, jnp.uint32).reshape(-1)
         return jnp.concatenate([bits, counts.reshape(-1)])
 
-    def parted(self, words: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def parted(self, words: np.ndarray | jax.Array) -> tuple[np.ndarray, np.ndarray]:
         """Host: `joined`'s inverse, over any leading axes: `(floats [..., F], counts
         [..., 2, K])`."""
         words = np.asarray(words)

@@ -31,6 +31,8 @@ from ._logger import Logger
 class ReportSink(Protocol):
     """What a reporting wrapper hands its reports to (a `jaxmetrics.Logger`)."""
 
+    include_running: bool  # the reports have running episodes (gathered with the rest)
+
     def emit_from_wrapper(
         self, state: MetricsState, step: Count, when: jax.Array, period: int
     ) -> MetricsState:
@@ -151,6 +153,7 @@ class Reporter:
             # collective in the period-end branch.
             return self.logger.emit_from_wrapper(state, self._step(state), when, period), clock
         name = self.axis_name
+        assert name is not None  # an axis of more than one device
 
         def report() -> None:
             merged = self._gathered(state, name)

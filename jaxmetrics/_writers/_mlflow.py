@@ -59,6 +59,7 @@ class _Parent:
                     self._experiment_id, run_name=self._run_name, tags=self._tags
                 )
                 self.run_id = run.info.run_id
+                assert self.run_id is not None  # a created run has its id
                 _log_params(self._client, self.run_id, self._params)
             self._open += 1
             return self.run_id
@@ -182,6 +183,7 @@ class MLflowWriter:
             run_tags["mlflow.parentRunId"] = parent
         run = self.client.create_run(self.experiment_id, run_name=self._run_name, tags=run_tags)
         self.run_id = run.info.run_id
+        assert self.run_id is not None  # a created run has its id
         _log_params(self.client, self.run_id, self._params)
 
     def write(self, record: Record) -> None:

@@ -102,9 +102,11 @@ class TensorBoardWriter:
         self._std_bands = std_bands
         self._purge_step = purge_step
 
+        # The generated protobuf modules define their messages at import time, out of the
+        # type checker's sight.
         from tensorboardX import summary
-        from tensorboardX.proto.event_pb2 import Event, SessionLog
-        from tensorboardX.proto.summary_pb2 import HistogramProto, Summary
+        from tensorboardX.proto.event_pb2 import Event, SessionLog  # pyright: ignore[reportAttributeAccessIssue]
+        from tensorboardX.proto.summary_pb2 import HistogramProto, Summary  # pyright: ignore[reportAttributeAccessIssue]
         from tensorboardX.record_writer import masked_crc32c
 
         self._summary, self._Event, self._SessionLog, self._Hist, self._Summary = (

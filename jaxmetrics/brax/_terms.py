@@ -257,7 +257,12 @@ def joint_velocity(
       >>> jmb.joint_velocity(slice(6, None)).reduce
       'mean'
     """
-    return norm(lambda t: t.state.pipeline_state.qd, indices, ord=ord, reduce=reduce, stats=stats)
+
+    def qd(t: Transition) -> jax.Array:
+        assert t.state.pipeline_state is not None  # every Brax backend's env has one
+        return t.state.pipeline_state.qd
+
+    return norm(qd, indices, ord=ord, reduce=reduce, stats=stats)
 
 
 def control_effort(

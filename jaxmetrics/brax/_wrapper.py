@@ -17,7 +17,7 @@ Hence the order `AutoResetWrapper(MetricsWrapper(VmapWrapper(env)))`, built by `
 
 import sys
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -212,7 +212,12 @@ class MetricsWrapper(Wrapper):
         self.sharding = sharding
         # Under Auto mesh axes XLA chooses the layout of a jit's outputs; pinning the
         # MetricsState after each step keeps it split like the envs across jit calls.
-        self._state_sharding = None if sharding is None else metrics.state_sharding(sharding)
+        # `state_sharding` refuses a sharding other than a NamedSharding (TypeError).
+        self._state_sharding = (
+            None
+            if sharding is None
+            else metrics.state_sharding(cast(jax.sharding.NamedSharding, sharding))
+        )
         self.reporter = (
             None
             if logger is None
@@ -250,7 +255,8 @@ class MetricsWrapper(Wrapper):
             info[STATE_KEY] = self.reporter.init(done.shape[0])
         if self.reporter is not None:
             info[CLOCK_KEY] = jnp.zeros((), jnp.int32)
-        return _strong_types(state.replace(info=info))
+        # flax.struct adds `replace` to Brax's State at run time.
+        return _strong_types(state.replace(info=info))  # pyright: ignore[reportAttributeAccessIssue]
 
     def step(self, state: State, action: jax.Array) -> State:
         info = dict(state.info)
@@ -266,7 +272,7 @@ class MetricsWrapper(Wrapper):
                 f"this State has no info[{CLOCK_KEY!r}]: reset it with this wrapper's reset "
                 "before stepping."
             )
-        inner = state.replace(info=info)
+        inner = state.replace(info=info)  # flax.struct's  # pyright: ignore[reportAttributeAccessIssue]
         steps = info["steps"] + self.action_repeat
         time_up = steps >= self.episode_length
         last_index = self.action_repeat - 1
@@ -327,7 +333,8 @@ class MetricsWrapper(Wrapper):
         if self._state_sharding is not None:
             mstate = placed(mstate, self._state_sharding)
         new_info[STATE_KEY] = mstate
-        return _strong_types(nstate.replace(reward=reward, done=done, info=new_info))
+        # flax.struct adds `replace` to Brax's State at run time.
+        return _strong_types(nstate.replace(reward=reward, done=done, info=new_info))  # pyright: ignore[reportAttributeAccessIssue]
 
 
 def wrap(
@@ -432,4 +439,5 @@ def replace_metrics_state(env_state: State, state: MetricsState) -> State:
     metrics_state(env_state)
     if not isinstance(state, MetricsState):
         raise TypeError(f"expected a MetricsState, got {type(state).__name__}.")
-    return env_state.replace(info={**env_state.info, STATE_KEY: state})
+    # flax.struct adds `replace` to Brax's State at run time.
+    return env_state.replace(info={**env_state.info, STATE_KEY: state})  # pyright: ignore[reportAttributeAccessIssue]

@@ -10,7 +10,8 @@ from inside Brax's jitted, pmapped training step. TensorBoard files go to `--log
 import argparse
 import functools
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import jax
 
@@ -46,6 +47,7 @@ def metrics_spec() -> jm.Metrics:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Trains with Brax's PPO and the reporting wrapper; returns the exit status."""
+    assert __doc__ is not None
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="inverted_pendulum", help="a Brax env name")
     p.add_argument("--timesteps", type=int, default=8192, help="env steps to train for")
@@ -60,7 +62,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     start = time.time()
     with jm.Logger(metrics, [jm.TensorBoardWriter(args.log_dir)]) as logger:
 
-        def progress(step: int, brax_metrics: dict) -> None:
+        def progress(step: int, brax_metrics: Mapping[str, Any]) -> None:
             ret = brax_metrics.get("eval/episode_reward")
             shown = "" if ret is None else f"  eval return {float(ret):7.2f}"
             print(f"{time.time() - start:6.1f} s  step {int(step):>8}{shown}", flush=True)

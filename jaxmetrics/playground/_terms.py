@@ -24,4 +24,5 @@ def joint_velocity(
       >>> jmp.joint_velocity(slice(6, None)).reduce
       'mean'
     """
-    return norm(lambda t: t.state.data.qvel, indices, ord=ord, reduce=reduce, stats=stats)
+    # A Playground State (with `data`) in the Transition typed for Brax's.
+    return norm(lambda t: t.state.data.qvel, indices, ord=ord, reduce=reduce, stats=stats)  # pyright: ignore[reportAttributeAccessIssue]

@@ -109,13 +109,15 @@ def wrap(
             "corrupt the MetricsState kept in State.info. Use full_reset=False (the default: "
             "envs reset to their cached first state)."
         )
+    # Playground's envs go through Brax's wrappers by duck typing (as in Playground's own
+    # wrap_for_brax_training).
     if randomization_fn is None:
-        batched = brax_training.VmapWrapper(env)
+        batched = brax_training.VmapWrapper(env)  # pyright: ignore[reportArgumentType]
     else:
         batched = playground_wrapper.BraxDomainRandomizationVmapWrapper(env, randomization_fn)
     return playground_wrapper.BraxAutoResetWrapper(
         MetricsWrapper(
-            batched,
+            batched,  # pyright: ignore[reportArgumentType]
             metrics,
             episode_length,
             action_repeat,

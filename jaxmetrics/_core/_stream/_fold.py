@@ -25,6 +25,18 @@ from ._segments import SegmentPlan
 from ._selected import Selected
 from ._state import Ring, StreamPlan, StreamState, packed, take_rows, weight_dtype, window_ring
 
+# What a fold gives (`_fold_rows`): the batch's statistics, each EMA ring's and each
+# window ring's data, each histogram's counts and `hist_steps`, and the fields and counts
+# where the fused kernel updated them itself (else None).
+Folded = tuple[
+    _update.Batch,
+    tuple[jax.Array, ...],
+    tuple[jax.Array, ...],
+    tuple[Count, ...],
+    tuple[jax.Array, ...],
+    tuple[_update.Fields, Count] | None,
+]
+
 
 def add(
     plan: StreamPlan,
@@ -93,7 +105,9 @@ def add_with_counts(
         part = _segments.dense_state(sp, s)
         folded = _fold_rows(folds, part, batch, part.mean, counted, fused, interpret)
         grouped = _segments.segment_batch(
-            *(gathered(a) for a in sources), sp.groups, _segments.segment_rows(sp, shift)
+            *(gathered(a) for a in sources),
+            groups=sp.groups,
+            shift=_segments.segment_rows(sp, shift),
         )
         joined = _segments.joined(sp, _update.Batch(*folded[0]), grouped, counted.shape[0], width)
         folded = (joined, *folded[1:-1], None)
@@ -140,8 +154,15 @@ def update_rows(plan: StreamPlan) -> _update.Rows:
 
 
 def _fold_rows(
-    plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, fused, interpret, counts=None
-):
+    plan: StreamPlan,
+    s: StreamState,
+    batch: Selected,
+    shift: jax.Array,
+    counted: jax.Array,
+    fused: bool,
+    interpret: bool,
+    counts: Count | None = None,
+) -> Folded:
     """`_fold` of the rows `batch` selects, or where `fused`, the batch fits and the
     spec has an EMA, a window or group rows, or a batch past `REDUCED_BY_XLA` entries,
     `_fold_fused`; `counted` is `[C, B]` (C up to the plan's rows times the packs of
@@ -193,7 +214,25 @@ def arrivals_after(mask: jax.Array) -> tuple[jax.Array, jax.Array]:
     return after, later[:, 0] + totals[:, 0]
 
 
-def _batch(values, mask, nonfinite, shift, wt, ema_in, counted):
+def _batch(
+    values: jax.Array,
+    mask: jax.Array,
+    nonfinite: jax.Array,
+    shift: jax.Array,
+    wt: jnp.dtype,
+    ema_in: jax.Array | None,
+    counted: jax.Array,
+) -> tuple[
+    jax.Array,
+    jax.Array,
+    jax.Array,
+    jax.Array,
+    jax.Array,
+    jax.Array,
+    jax.Array,
+    jax.Array | None,
+    jax.Array,
+]:
     """Per row of a batch `values[R, B]` where `mask`: the count, sum, min, max, and the
     mean and sum of squared deviations of `values - shift`; the sum of `nonfinite`; the
     sum of each row of `ema_in` (`_ema_operands`; None without EMA rows); the sum of each
@@ -378,7 +417,21 @@ def _advanced(w: Ring, k: jax.Array) -> Ring:
     return w._replace(pos=(w.pos + stored) % w.size, filled=jnp.minimum(w.filled + stored, w.size))
 
 
-def _fold(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, counted):
+def _fold(
+    plan: StreamPlan,
+    s: StreamState,
+    values: jax.Array,
+    mask: jax.Array,
+    nonfinite: jax.Array,
+    shift: jax.Array,
+    counted: jax.Array,
+) -> tuple[
+    _update.Batch,
+    tuple[jax.Array, ...],
+    tuple[jax.Array, ...],
+    tuple[Count, ...],
+    tuple[jax.Array, ...],
+]:
     """The batch's statistics (`_update.Batch`), and what it adds that depends on
     arrival order, and its histograms: the data of each EMA ring and each window ring, and
     each histogram's counts with its `hist_steps`. `counted` has `counts_width` rows."""
@@ -397,6 +450,8 @@ def _fold(plan: StreamPlan, s: StreamState, values, mask, nonfinite, shift, coun
     def ring(w: Ring, rows: tuple[int, ...]) -> jax.Array:
         if not w.size:
             return w.data
+        # A ring's rows are ranked rows (`_ranked`): `after` and `k` are set.
+        assert after is not None and k is not None
         i = tuple(at[r] for r in rows)
         rk = take_rows(i, k)
         args = (
@@ -424,8 +479,14 @@ def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
 
 
 def _fold_fused(
-    plan: StreamPlan, s: StreamState, batch: Selected, shift, counted, interpret, counts=None
-):
+    plan: StreamPlan,
+    s: StreamState,
+    batch: Selected,
+    shift: jax.Array,
+    counted: jax.Array,
+    interpret: bool,
+    counts: Count | None = None,
+) -> Folded:
     """`_fold` on a CUDA GPU (or where `interpret`): the batch's statistics, the EMA and
     the rings in one kernel of our own (`_kernel.fold`), which reads the rows from
     `batch`'s source rows; elsewhere `_fold` itself, of the rows as arrays."""
@@ -437,7 +498,7 @@ def _fold_fused(
         out[list(members)] = np.arange(len(members), dtype=np.int32)
         return out
 
-    def kernel(s, batch, shift, counted):
+    def kernel(s: StreamState, batch: Selected, shift: jax.Array, counted: jax.Array) -> Folded:
         rings = []
         for g, r in zip(plan.ema_groups, s.ema_rings):
             if r.size:
@@ -465,6 +526,7 @@ def _fold_fused(
         )
         update = None
         if own:
+            assert counts is not None  # `own` needs counts
             update = _update.InKernel(_update.Fields.of(s), update_rows(plan), counts)
         stats, data, hists, updated = _kernel.fold(
             batch,
@@ -485,9 +547,12 @@ def _fold_fused(
         words = tuple(Count(h.hi, h.lo) for h in hists)
         return stats, ema_data, tuple(data), words, tuple(h.counted for h in hists), updated
 
-    def reference(s, batch, shift, counted):
+    def reference(s: StreamState, batch: Selected, shift: jax.Array, counted: jax.Array) -> Folded:
         folded = _fold_dense(plan, s, batch, shift, counted)
-        return (*folded, _updated(plan, s, folded[0], shift, counts) if own else None)
+        return (
+            *folded,
+            _updated(plan, s, folded[0], shift, counts) if own and counts is not None else None,
+        )
 
     # Where each row is one program of the kernel, that program also updates the row's
     # fields of the state, where XLA's update is one more kernel (docs/benchmarks.md,

@@ -175,6 +175,7 @@ def fold(
     ]
     if batch.grouped:
         args.append((batch.ids, whole(batch.ids)))
+    chunk_sums = None  # the counted rows' chunk sums, where `gather`
     if gather:
         lists, chunk_sums = _reached.reached(batch, counted if packs else counted[:0], interpret)
         args += [(a, whole(a)) for a in lists if a is not None]
@@ -196,13 +197,15 @@ def fold(
     first_hist = len(args)
     words = [a for h in hists for a in h]
     args += [(a, whole(a)) for a in words]
-    listed_sums = chunk_sums.shape[0] if own and gather and packs else 0
+    listed_sums = chunk_sums.shape[0] if own and packs and chunk_sums is not None else 0
     first_update = len(args)
     if own:
+        assert update is not None  # `own` needs it
         assert len(rings) == len(update.rows.windows)
         ins = _update.kernel_inputs(update)
         args += [(col(a), one) if a.ndim == 1 else (a, whole(a)) for a in ins]
         if listed_sums:
+            assert chunk_sums is not None
             args.append((chunk_sums, whole(chunk_sums)))
     n_int = pl.next_power_of_2(2 + packs)
     outs = [
@@ -212,6 +215,7 @@ def fold(
     outs += [(jax.ShapeDtypeStruct(r.data.shape, r.data.dtype), whole(r.data)) for r in rings]
     outs += [(jax.ShapeDtypeStruct(a.shape, a.dtype), whole(a)) for a in words]
     if own:
+        assert update is not None
         outs += [
             (jax.ShapeDtypeStruct((rows, 1), o.dtype), one) if len(o.shape) == 1 else (o, whole(o))
             for o in _update.kernel_outputs(update)
@@ -256,7 +260,7 @@ def fold(
                     ema=first_ring - 2 if ema is not None else None,
                     pos=[first_ring + 2 * i + 1 for i in range(len(rings))],
                 )
-                if own
+                if own and update is not None
                 else {}
             ),
         },
@@ -267,6 +271,7 @@ def fold(
     ints = ints.reshape(rows, n_chunks, n_int)
     floats, ints = (floats[:, 0], ints[:, 0]) if n_chunks == 1 else combine(floats, ints)
     if listed:
+        assert chunk_sums is not None  # `listed`: the rows were read from the lists
         counted_sums = _reached.summed(chunk_sums)
         counted_sums = jnp.pad(counted_sums, (0, rows * packs - counted_sums.shape[0]))
     else:
@@ -274,11 +279,16 @@ def fold(
     stats = Batch(
         ints[:, 0],
         *(floats[:, i] for i in range(5)),
-        ints[:, 1],
-        floats[:, 5] if ema is not None else None,
-        counted_sums,
+        nonfinite=ints[:, 1],
+        ema=floats[:, 5] if ema is not None else None,
+        counted_sums=counted_sums,
     )
     data, words = data[: len(rings)], data[len(rings) :]
     words, updated = words[: 3 * len(hists)], words[3 * len(hists) :]
     hists = tuple(HistIn(*words[i : i + 3]) for i in range(0, len(words), 3))
-    return stats, tuple(data), hists, _update.from_kernel(update, updated) if own else None
+    return (
+        stats,
+        tuple(data),
+        hists,
+        _update.from_kernel(update, updated) if own and update is not None else None,
+    )

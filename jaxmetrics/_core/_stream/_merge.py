@@ -196,12 +196,12 @@ def combine(plan: StreamPlan, shards: StreamState) -> StreamState:
     """
     num = shards.steps.shape[0]
     shards = jax.tree.map(gathered, shards)  # explicit meshes: shards meet here, once
-    first = jax.tree.map(lambda x: x[0], shards) if num else None
-    if num == 1:
-        return first
     if num == 0:
         history = any(r.size > 0 for r in shards.ema_rings)
         return init(plan, ema_history=history)
+    first = jax.tree.map(lambda x: x[0], shards)
+    if num == 1:
+        return first
     rest = jax.tree.map(lambda x: x[1:], shards)
     return jax.lax.scan(lambda acc, sh: (merge(plan, acc, sh), None), first, rest)[0]
 

@@ -5,7 +5,8 @@ Its inputs are `fold`'s, in its order; `Table` is the layout of the row's static
 """
 
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -68,7 +69,7 @@ def program(
     pairs: tuple[int, ...] = (),
     sources: bool = False,
     updates: tuple[bool, int] | None = None,
-):
+) -> None:
     """One chunk of a row of a batch `[rows, batch]` (`chunking`); `rings` are the ring
     sizes, `packs` the counted rows per batch row (of the first `counted` rows of a
     counted input, row `p * rows + r` in pack p of row r; 0: none has any). `table` holds
@@ -111,6 +112,9 @@ def program(
     XLA's update of the `[R]` fields is a kernel of its own; with listed sums (`[C, n]`,
     the listing's chunks') it sums its counted rows' from them."""
     m_ref, x_ref, bad_ref, shift_ref, step_ref, table, *refs = refs
+    # The optional inputs, each set where its input is passed.
+    ids_ref = listed_ref = reached_ref = flags_ref = pairs_ref = counted_ref = None
+    w_ref = eoff_ref = update_in = None
     if grouped:
         ids_ref, *refs = refs
     if gather:
@@ -238,7 +242,7 @@ def program(
     chunk_id = pl.program_id(1) if n_chunks > 1 else 0
     izero = jnp.zeros((1, 1), jnp.int32)
     fzero = jnp.zeros((1, 1), jnp.float32)
-    later = None
+    earlier = later = None
     if counts_ref is not None:
         marks = counts_ref[...]
         at = jax.lax.broadcasted_iota(jnp.int32, marks.shape, 1)
@@ -248,19 +252,22 @@ def program(
         lo = chunk_id * chunk
         earlier, later = masked_in_around(mask_at, batch, lo, jnp.minimum(lo + chunk, batch))
     shift = shift_ref[...]
+    coeff = None
     if ema:
         coeff = jax.lax.bitcast_convert_type(table[:, Table.COEFF : Table.COEFF + 1], jnp.float32)
 
+    finish = listed_sums = None
     if updates:
         # The row's fields of the state are read here, before the fold, whose loads
         # their reads then overlap; they are written once the row is folded.
+        assert update_in is not None
         ins = list(update_in)
-        listed_sums = None
         if updates[1]:
             sums_ref = ins.pop()
             listed_sums = [_reached.summed_in_kernel(sums_ref, c) for c in packed_rows(updates[1])]
         emas = None
         if ema:
+            assert coeff is not None and w_ref is not None and eoff_ref is not None
             emas = (coeff > 0, jnp.where(coeff > 0, coeff, 1.0), w_ref[...], eoff_ref[...])
         windows = [
             (size, table[:, Table.ring(i) : Table.ring(i) + 1] >= 0, ring_in[2 * i + 1][...])
@@ -268,7 +275,18 @@ def program(
         ]
         finish = _update.row_updater(ins, update_out, shift, step_ref[...], emas, windows, r)
 
-    def write(xsum, xmin, xmax, p, s1, s2, wsum, total, nbad, csums):
+    def write(
+        xsum: jax.Array,
+        xmin: jax.Array,
+        xmax: jax.Array,
+        p: jax.Array,
+        s1: jax.Array,
+        s2: jax.Array,
+        wsum: jax.Array,
+        total: jax.Array,
+        nbad: jax.Array,
+        csums: Sequence[jax.Array],
+    ) -> None:
         k = jnp.maximum(total, 1).astype(jnp.float32)
         mean_dev, m2 = p + s1 / k, jnp.maximum(s2 - s1 * s1 / k, 0)
         floats[:, 0:1] = xsum
@@ -277,6 +295,7 @@ def program(
         floats[:, 3:4] = mean_dev
         floats[:, 4:5] = m2
         if updates:
+            assert finish is not None
             stats = Batch(total, xsum, xmin, xmax, mean_dev, m2, nbad, wsum if ema else None, None)
             finish(stats, csums if listed_sums is None else listed_sums)
         if ema:
@@ -347,7 +366,9 @@ def program(
 
         jax.lax.cond(length <= chunk, one_block, lambda: blocks_of(chunk))
 
-    def fold_blocks(blocks, values_of, flags=None):
+    def fold_blocks(
+        blocks: Callable[..., Any], values_of: Callable[[], Any], flags: jax.Array | None = None
+    ) -> None:
         """The row's statistics folded over its blocks: `blocks(body, init, xs, *extra)`
         folds `body` over them, with each block's values from `xs` (`values_of()`);
         `flags`: the row's non-finite flags, where its blocks have none."""
@@ -373,9 +394,11 @@ def program(
             counts, (izero, izero if flags is None else flags, (izero,) * packs)
         )
         ahead = izero if later is None else later
-        row_total = total if later is None else earlier + total + later
+        row_total = total if earlier is None or later is None else earlier + total + later
         k = jnp.maximum(total, 1).astype(jnp.float32)
+        log_keep = off = seeding = None
         if ema:
+            assert coeff is not None and w_ref is not None and eoff_ref is not None
             log_keep = log2_keep(coeff)
             # The offset and seeding are worked out here from the state's own fields:
             # computed outside, XLA put them in the per-row update's kernel, which then
@@ -393,14 +416,19 @@ def program(
                 pos = plt.load(ring_in[2 * i + 1].at[pos_row[:, 0]])[:, None]
             ring_at.append((row, pos + jnp.minimum(row_total, size) - 1))
 
-        def second(on, bad, *rest):
+        def second(
+            on: jax.Array, bad: jax.Array, *rest: Any
+        ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
             *_, x, p, acc = rest
             before, s1, s2, wsum = acc
             m = on.astype(jnp.int32)
             zero = jnp.zeros_like(x)
             after = ahead + total - before - jnp.cumsum(m, axis=1)
             e = jnp.where(on, x - shift - p, zero)
+            weighted = None
             if ema:
+                assert coeff is not None and log_keep is not None
+                assert off is not None and seeding is not None
                 # (1-c)^after; 0^0 = 1 for c = 1, as jnp.power gives.
                 decay = jnp.where(after == 0, 1.0, jnp.exp2(after.astype(jnp.float32) * log_keep))
                 weight = jnp.where(seeding & (after == row_total - 1), decay, coeff * decay)
@@ -432,7 +460,12 @@ def program(
             _, s1, s2, wsum = blocks(second, (izero, fzero, fzero, fzero), xs, p)
             return xsum, xmin, xmax, p, s1, s2, wsum
 
-        write(*jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty), total, nbad, csums)
+        write(
+            *jax.lax.cond(jnp.sum(total) > 0, passes, lambda: empty),
+            total=total,
+            nbad=nbad,
+            csums=csums,
+        )
         for i, bins in enumerate(() if pairs else hist_bins):
             at = Table.hist(len(rings), i)
             words = (*hist_in[3 * i + 1 : 3 * i + 3], *hist_out[3 * i + 1 : 3 * i + 3])

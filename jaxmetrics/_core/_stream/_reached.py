@@ -19,7 +19,7 @@ flags summed beside it, and with them its reached entries' indices (`Reached`).
 """
 
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -97,14 +97,16 @@ def chunk(batch: int) -> int:
     return min(size, 1 << (batch.bit_length() - 1))
 
 
-def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int, values: bool):
+def _list_kernel(
+    ok_ref: Any, bad_ref: Any, *refs, batch: int, chunk: int, counted: int, values: bool
+) -> None:
     """One chunk of a source row: each listed entry stored at its rank in the chunk, in
     the chunk's segment of the row's list, and the chunk's listed entries counted: with
     `values`, its masked-in entries' values, its flags summed; else its reached entries'
     indices (`Reached`). Programs past the source rows sum a chunk of a counted row
     instead. The last chunk of a row that chunks do not divide ends at the row's end, its
     entries of the chunk before masked out."""
-    x_ref = None
+    x_ref = counted_ref = None
     if values:
         x_ref, *refs = refs
     if counted:
@@ -118,7 +120,7 @@ def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int, v
     start = lo if batch % chunk == 0 else jnp.minimum(lo, batch - chunk)
     at = jax.lax.broadcasted_iota(jnp.int32, (1, chunk), 1) + start
 
-    def listing():
+    def listing() -> None:
         cols = (pl.ds(row, 1), pl.ds(start, chunk))
         here = at >= lo
         bad = jnp.where(here, bad_ref[cols].astype(jnp.int32), 0)
@@ -128,6 +130,7 @@ def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int, v
         # back).
         slot = jnp.where(kept, lo + rank, listed_ref.shape[1])
         if values:
+            assert x_ref is not None and flags_ref is not None
             # Only the listed entries' values are loaded: the whole chunk's cost the listing
             # twice as much (docs/benchmarks.md, "Scaling").
             entry = plt.load(x_ref.at[cols], mask=kept, other=0.0)
@@ -139,7 +142,8 @@ def _list_kernel(ok_ref, bad_ref, *refs, batch: int, chunk: int, counted: int, v
             kept.astype(jnp.int32), axis=1, keepdims=True
         )
 
-    def summing():
+    def summing() -> None:
+        assert counted_ref is not None and sums_ref is not None  # run only with `counted`
         r = pl.ds(row - sources, 1)
         part = jnp.where(at >= lo, counted_ref[r, pl.ds(start, chunk)].astype(jnp.int32), 0)
         sums_ref[r, pl.ds(c, 1)] = jnp.sum(part, axis=1, keepdims=True)
@@ -179,7 +183,9 @@ def list_reader(listed_ref, counts_ref, src, batch: int):
     return length, entries
 
 
-def reached(batch: Selected, counted: jax.Array, interpret: bool = False) -> Reached:
+def reached(
+    batch: Selected, counted: jax.Array, interpret: bool = False
+) -> tuple[Reached, jax.Array]:
     """The lists of `batch`'s source rows (`Reached`), and the sums of `counted`'s rows
     (`[C, B]` integers: a counted row sums every entry, reached or not) per chunk (`[C,
     n]`, added up by `summed`). One program per chunk lists and counts a chunk's entries,

@@ -135,7 +135,9 @@ def segment_rows(sp: SegmentPlan, x: jax.Array) -> jax.Array:
     return _take(x, np.asarray(at, np.int32).reshape(-1)).reshape(len(sp.blocks), sp.width)
 
 
-def joined(sp: SegmentPlan, dense: Batch, grouped: tuple[jax.Array, ...], c: int, width: int):
+def joined(
+    sp: SegmentPlan, dense: Batch, grouped: tuple[jax.Array, ...], c: int, width: int
+) -> Batch:
     """Every row's batch statistics (`_update.Batch`, `[R]`; counted sums `[width]`) from
     the dense rows' (`dense`, counted sums of the `c` counted rows first) and the segment
     rows' (`grouped`, `segment_batch`'s seven); segment rows have no EMA sum."""
@@ -143,8 +145,9 @@ def joined(sp: SegmentPlan, dense: Batch, grouped: tuple[jax.Array, ...], c: int
     ema = dense.ema
     if ema is not None:
         ema = _assembled(sp, ema, jnp.zeros((len(sp.blocks), sp.width), ema.dtype))
+    assert dense.counted_sums is not None  # None only inside the fused kernel
     counted = jnp.pad(dense.counted_sums[:c], (0, width - c))
-    return Batch(*both, ema, counted)
+    return Batch(*both, ema=ema, counted_sums=counted)
 
 
 def segment_batch(

@@ -105,7 +105,8 @@ class Selected:
     def dense(self) -> tuple[jax.Array, jax.Array, jax.Array]:
         """The rows as arrays `[R, B]`: values, mask and non-finite flags."""
         if not self.grouped:
-            return tuple(take_rows(self.src, a) for a in (self.values, self.ok, self.bad))
+            values, ok, bad = (take_rows(self.src, a) for a in (self.values, self.ok, self.bad))
+            return values, ok, bad
         src = np.asarray(self.src, np.int32)
         take = lambda a: jnp.take(a, src, axis=0)  # noqa: E731
         match = self.group_index(self.kind) == jnp.asarray(self.group, jnp.int32)[:, None]

@@ -69,7 +69,7 @@ def packed(values: jax.Array, stamps: jax.Array) -> jax.Array:
 class StreamState(NamedTuple):
     """Report statistics of R metrics; see the module docstring for what resets when."""
 
-    count: Count  # [R] uint32 pair: values in this period
+    count: Count  # [R] uint32 pair: values in this period (shadows tuple.count)  # pyright: ignore[reportIncompatibleMethodOverride]
     mean: jax.Array  # [R] float: Welford/Chan running mean of the period
     m2: jax.Array  # [R] float: sum of squared deviations, Kahan-compensated by m2_c
     m2_c: jax.Array  # [R] float

@@ -13,8 +13,8 @@ multi-output kernel that updates the other per-row fields (sibling fusions must 
 operand) instead of in a kernel of its own.
 """
 
-from collections.abc import Callable
-from typing import NamedTuple
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,7 +31,7 @@ class Fields(NamedTuple):
     """The per-row fields a batch updates (`StreamState`'s), each window's `pos` and
     `filled` in `pos` and `filled`."""
 
-    count: Count
+    count: Count  # the field shadows tuple.count  # pyright: ignore[reportIncompatibleMethodOverride]
     nonfinite: Count
     mean: jax.Array
     m2: jax.Array
@@ -52,8 +52,8 @@ class Fields(NamedTuple):
     def of(cls, s: StreamState) -> "Fields":
         return cls(
             *(getattr(s, f) for f in cls._fields[:-2]),
-            tuple(w.pos for w in s.windows),
-            tuple(w.filled for w in s.windows),
+            pos=tuple(w.pos for w in s.windows),
+            filled=tuple(w.filled for w in s.windows),
         )
 
     def into(self, s: StreamState) -> StreamState:
@@ -71,7 +71,7 @@ class Batch(NamedTuple):
     flags, and with an EMA its weighted sum (else None); and `counted_sums`, the sums of
     the counted rows (`[C]`)."""
 
-    count: jax.Array
+    count: jax.Array  # the field shadows tuple.count  # pyright: ignore[reportIncompatibleMethodOverride]
     sum: jax.Array
     min: jax.Array
     max: jax.Array
@@ -79,7 +79,7 @@ class Batch(NamedTuple):
     m2: jax.Array
     nonfinite: jax.Array
     ema: jax.Array | None
-    counted_sums: jax.Array
+    counted_sums: jax.Array | None
 
 
 class Rows(NamedTuple):
@@ -292,12 +292,32 @@ def from_kernel(u: InKernel, outs: list[jax.Array]) -> tuple[Fields, Count]:
     pos, filled, rest = tuple(rest[:w]), tuple(rest[w : 2 * w]), rest[2 * w :]
     counts = Count(*rest) if rest else u.counts
     fields = Fields(
-        count, nonfinite, mean, m2, m2_c, total, total_c, vmin, vmax, *ema, steps, pos, filled
+        count,
+        nonfinite,
+        mean,
+        m2,
+        m2_c,
+        total,
+        total_c,
+        vmin,
+        vmax,
+        *ema,
+        steps=steps,
+        pos=pos,
+        filled=filled,
     )
     return fields, counts
 
 
-def row_updater(ins, outs, shift, steps, ema, windows, row) -> Callable[[Batch, list], None]:
+def row_updater(
+    ins: Sequence[Any],
+    outs: Sequence[Any],
+    shift: jax.Array,
+    steps: jax.Array,
+    ema: tuple[jax.Array, jax.Array, jax.Array, jax.Array] | None,
+    windows: Sequence[tuple[int, jax.Array, jax.Array]],
+    row: jax.Array,
+) -> Callable[[Batch, Sequence[jax.Array]], None]:
     """Inside the fused kernel, by the program of row `row` (which folds the whole row):
     the row's fields read from `ins` now, so that the reads overlap the fold, and what
     then updates them (`update`) with the batch's statistics (`Batch`) and the sums of its
@@ -332,14 +352,14 @@ def row_updater(ins, outs, shift, steps, ema, windows, row) -> Callable[[Batch, 
         vmin,
         vmax,
         *ema_fields,
-        steps,
-        tuple(pos),
-        tuple(filled),
+        steps=steps,
+        pos=tuple(pos),
+        filled=tuple(filled),
     )
     counted = [(pl.ds(p, 1), pl.ds(row, 1)) for p in range(ins[0].shape[0])] if ins else []
     counts = [Count(ins[0][at], ins[1][at]) for at in counted]
 
-    def finish(b: Batch, csums: list) -> None:
+    def finish(b: Batch, csums: Sequence[jax.Array]) -> None:
         written = _written(update(f, b, shift, rows, jnp.float32), ema is not None)
         for out, value in zip(outs, written):
             out[...] = value

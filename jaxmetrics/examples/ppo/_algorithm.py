@@ -10,7 +10,7 @@ episode carries no advantage and no value error.
 """
 
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -23,6 +23,10 @@ from ._config import PPOConfig
 from ._envs import make_env
 from ._networks import ActorCritic, gaussian_entropy, gaussian_log_prob
 from ._obs_stats import ObsStats, init_obs_stats, normalize_obs, update_obs_stats
+
+# `ActorCritic`'s outputs (mean, log_std, value): what `network.apply` returns without
+# mutable collections (flax annotates it for both).
+_Outputs = tuple[jax.Array, jax.Array, jax.Array]
 
 
 class TrainState(NamedTuple):
@@ -174,7 +178,7 @@ def make_ppo(config: PPOConfig = _DEFAULT_CONFIG) -> PPO:
         )
 
     def loss_fn(params, batch):
-        mean, log_std, value = network.apply(params, batch["obs"])
+        mean, log_std, value = cast(_Outputs, network.apply(params, batch["obs"]))
         log_prob = gaussian_log_prob(batch["action"], mean, log_std)
         log_ratio = log_prob - batch["log_prob"]
         ratio = jnp.exp(log_ratio)
@@ -201,7 +205,7 @@ def make_ppo(config: PPOConfig = _DEFAULT_CONFIG) -> PPO:
 
         def env_step(env_state, k):
             obs = normalize_obs(stats, env_state.obs)
-            mean, log_std, value = network.apply(params, obs)
+            mean, log_std, value = cast(_Outputs, network.apply(params, obs))
             raw_action = mean + jnp.exp(log_std) * jax.random.normal(k, mean.shape)
             log_prob = gaussian_log_prob(raw_action, mean, log_std)
             nxt = env.step(env_state, jnp.clip(raw_action, -1.0, 1.0))
@@ -221,7 +225,9 @@ def make_ppo(config: PPOConfig = _DEFAULT_CONFIG) -> PPO:
         env_state, traj = jax.lax.scan(
             env_step, ts.env_state, jax.random.split(k_roll, c.unroll_length)
         )
-        _, _, last_value = network.apply(params, normalize_obs(stats, env_state.obs))
+        _, _, last_value = cast(
+            _Outputs, network.apply(params, normalize_obs(stats, env_state.obs))
+        )
         advantage, target = gae(
             traj["reward"],
             traj["value"],

@@ -47,8 +47,8 @@ class Checkpoints:
         if step is None:
             raise ValueError(f"train(resume=True): no checkpoint in {self.directory!r}.")
         run = self._manager.restore(step, args=ocp.args.Composite(run=ocp.args.JsonRestore()))
-        if run.run != self._run:
-            saved, now = _flat_settings(run.run), _flat_settings(self._run)
+        if run["run"] != self._run:
+            saved, now = _flat_settings(run["run"]), _flat_settings(self._run)
             diff = {k: (saved.get(k), now.get(k)) for k in sorted(saved.keys() | now.keys())}
             shown = ", ".join(f"{k}: {a!r} then, {b!r} now" for k, (a, b) in diff.items() if a != b)
             raise ValueError(
@@ -64,7 +64,7 @@ class Checkpoints:
         restored = self._manager.restore(
             step,
             args=ocp.args.Composite(state=ocp.args.StandardRestore(_without_empty(target))),
-        ).state
+        )["state"]
         # Zero-size leaves were not saved: they come from `target` (they hold no values).
         # Both sides are flattened with None as a leaf: the MetricsState's spec identity is
         # a None of its own, in both trees.

@@ -82,4 +82,7 @@ def make_metrics(
 def _qvel(t: jmb.Transition) -> jax.Array:
     """The generalized velocity: Playground's `State.data.qvel`, Brax's `pipeline_state.qd`."""
     data = getattr(t.state, "data", None)
-    return t.state.pipeline_state.qd if data is None else data.qvel
+    if data is not None:
+        return data.qvel
+    assert t.state.pipeline_state is not None  # every Brax backend's env has one
+    return t.state.pipeline_state.qd

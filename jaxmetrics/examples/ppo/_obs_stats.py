@@ -9,7 +9,7 @@ import jax.numpy as jnp
 class ObsStats(NamedTuple):
     """Running observation statistics (Welford/Chan), `[obs_size]` each."""
 
-    count: jax.Array  # shape=(), float32: observations seen
+    count: jax.Array  # shape=(), float32: observations seen (shadows tuple.count)  # pyright: ignore[reportIncompatibleMethodOverride]
     mean: jax.Array  # [obs_size] float32
     m2: jax.Array  # [obs_size] float32: sum of squared deviations
 
