@@ -306,8 +306,8 @@ def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace
 # XLA captures a loop body in a CUDA graph only from this many kernels on (default 5);
 # below it the host launches each kernel and waits on the loop condition every step. A
 # rollout's body always holds the env step's kernels too, so the update's own scans here
-# run with every body captured, as in a rollout (docs/benchmarks.md, "In a loop with an
-# env step"). Set before the first use of the backend; an XLA_FLAGS that names the
+# run with every body captured, as in a rollout (docs/benchmarks.md, "What is
+# measured"). Set before the first use of the backend; an XLA_FLAGS that names the
 # threshold keeps its own.
 GRAPH_FLAG = "--xla_gpu_graph_min_graph_size"
 

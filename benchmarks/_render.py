@@ -25,6 +25,9 @@ from ._targets import NOTE, order, targets
 
 DOC = "docs/benchmarks.md"
 TARGETS = "targets"
+PROFILES = ("kernels", "group_kernels")
+"""Tables the page leaves in the files: `--profile`'s device time per kernel (diagnostics
+of where a step goes, a dozen rows of kernel names each)."""
 BLOCK = re.compile(r"(<!-- bench: (\S+) -->\n)(.*?)(<!-- /bench -->)", re.S)
 
 
@@ -45,15 +48,17 @@ def load(directory: str) -> dict[str, dict[str, Any]]:
 
 
 def tables(doc: dict[str, Any]) -> list[Table]:
-    """The tables of one results file: a scenario run's tables (its stored targets left
-    out: `render` judges the targets again), or a trainer benchmark's summary."""
+    """The tables of one results file that the page shows: a scenario run's tables (its
+    stored targets left out: `render` judges the targets again; `PROFILES` too), or a
+    trainer benchmark's summary."""
     if doc.get("benchmark") == "brax_ppo_train":
         return [_brax_results.summary_table(doc)]
     if doc.get("benchmark") == "playground_ppo_train":
         return [_playground_table(doc)]
     if doc.get("benchmark") == "in_trainer":
         return [_in_trainer.table(doc)]
-    return [Table.from_dict(n, d) for n, d in doc["scenarios"].items() if n != TARGETS]
+    shown = [(n, d) for n, d in doc["scenarios"].items() if n not in (TARGETS, *PROFILES)]
+    return [Table.from_dict(n, d) for n, d in shown]
 
 
 def _playground_table(doc: dict[str, Any]) -> Table:
@@ -74,6 +79,29 @@ def _playground_table(doc: dict[str, Any]) -> Table:
 def _versions(v: Mapping[str, Any]) -> str:
     names = ("jax", "jaxlib", "brax", "mujoco-mjx", "mujoco_mjx", "playground", "warp_lang")
     return ", ".join(f"{n.replace('_', '-')} {v[n]}" for n in names if v.get(n))
+
+
+OUTPUT_OPTIONS = ("--json", "--out-dir", "--kind", "--commit", "--note", "--hlo-dir")
+"""Options of a recorded command that say where its results went, not what was measured."""
+
+
+def command(recorded: str) -> str:
+    """A recorded command line as it runs now: `python -m benchmarks` (the benchmarks were
+    `jaxmetrics.bench` when the older files were recorded) with the options that shape
+    the measurement, without `OUTPUT_OPTIONS` (paths of the machine it ran on).
+
+    >>> command("python3 -m jaxmetrics.bench --full --note tree abc --out-dir /root/out/c")
+    'python -m benchmarks --full'
+    """
+    words = recorded.split()
+    at = next(i for i, w in enumerate(words) if w == "-m") + 2
+    kept, skipping = ["python", "-m", "benchmarks"], False
+    for w in words[at:]:
+        if w.startswith("--"):
+            skipping = w.split("=")[0] in OUTPUT_OPTIONS
+        if not skipping:
+            kept.append(w)
+    return " ".join(kept)
 
 
 def source(name: str, doc: dict[str, Any]) -> str:
@@ -105,7 +133,7 @@ def source(name: str, doc: dict[str, Any]) -> str:
     flags = f" (`XLA_FLAGS={env['xla_flags']}`)" if env.get("xla_flags") else ""
     return (
         f"`{name}`: {device}, {env['date'][:10]}{tree}; {_versions(env['versions'])}; "
-        f"`{env['command']}`{flags}."
+        f"`{command(env['command'])}`{flags}."
     )
 
 

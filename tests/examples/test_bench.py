@@ -338,8 +338,8 @@ def test_each_scenario_is_written_to_its_own_file_which_renders(result, out_dir)
     rendered = _render.render(
         "".join(f"<!-- bench: {n} -->\n<!-- /bench -->\n" for n in docs), docs
     )
-    for t in tables[:-1]:  # every table but the targets
-        assert f"#### {t.title}\n" in rendered
+    for t in tables[:-1]:  # every table but the targets, the profiles left in the files
+        assert (f"#### {t.title}\n" in rendered) == (t.name not in _render.PROFILES), t.name
     # The document judges its targets on accelerators only.
     assert "cpu_" not in _render.targets_markdown(docs)
 
@@ -413,6 +413,14 @@ def test_committed_tables_are_what_the_committed_results_files_render_to():
     assert _render.render(text, docs) == text
 
 
+def test_the_results_page_stays_a_page_of_summaries():
+    # Issue 46: targets, how to run, one block per scenario; history stays in git.
+    text, docs = _committed()
+    assert text.count("\n") <= 500 and len(docs) <= 10
+    assert all("runs" not in doc for doc in docs.values())  # no per-run dumps
+    assert "/root/" not in text and "python -m jaxmetrics.bench" not in text
+
+
 def test_every_committed_results_file_renders_each_of_its_tables():
     text, docs = _committed()
     assert docs
@@ -428,13 +436,15 @@ def test_every_committed_results_file_renders_each_of_its_tables():
 
 def test_render_keeps_the_prose_and_refuses_what_it_cannot_place():
     _, docs = _committed()
-    one = {"cpu_groups.json": docs["cpu_groups.json"]}
-    text = "Before.\n<!-- bench: cpu_groups.json -->\nstale\n<!-- /bench -->\nAfter.\n"
+    one = {"h100_groups.json": docs["h100_groups.json"]}
+    text = "Before.\n<!-- bench: h100_groups.json -->\nstale\n<!-- /bench -->\nAfter.\n"
     out = _render.render(text, one)
-    assert out.startswith("Before.\n<!-- bench: cpu_groups.json -->\n`cpu_groups.json`: cpu, ")
+    assert out.startswith(
+        "Before.\n<!-- bench: h100_groups.json -->\n`h100_groups.json`: NVIDIA H100 80GB HBM3, "
+    )
     assert out.endswith("<!-- /bench -->\nAfter.\n") and "stale" not in out
     assert _render.render(out, one) == out
-    with pytest.raises(ValueError, match=r"no block shows \['cpu_groups.json'\]"):
+    with pytest.raises(ValueError, match=r"no block shows \['h100_groups.json'\]"):
         _render.render("Prose only.\n", one)
     with pytest.raises(ValueError, match="'<!-- bench: gone.json -->' names no results file"):
         _render.render("<!-- bench: gone.json -->\n<!-- /bench -->\n", one)
@@ -443,12 +453,12 @@ def test_render_keeps_the_prose_and_refuses_what_it_cannot_place():
 def test_render_is_the_cli_s_render_step(tmp_path):
     text, docs = _committed()
     (tmp_path / "benchmarks").mkdir()
-    for name in ("cpu_groups.json", "h100_groups.json"):
+    for name in ("h100_flush.json", "h100_groups.json"):
         with open(tmp_path / "benchmarks" / name, "w") as f:
             json.dump(docs[name], f)
     stale = "<!-- bench: targets -->\n<!-- /bench -->\n" + "".join(
         f"<!-- bench: {n} -->\nSTALE\n<!-- /bench -->\n"
-        for n in ("cpu_groups.json", "h100_groups.json")
+        for n in ("h100_flush.json", "h100_groups.json")
     )
     (tmp_path / "benchmarks.md").write_text(stale)
     assert benchmarks.main(["--render", str(tmp_path / "benchmarks.md")]) == []
