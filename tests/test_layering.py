@@ -22,7 +22,7 @@ from jaxmetrics._core import _episode, _reductions, _spec, _statistics, _stream,
 PACKAGE = Path(jm.__file__).resolve().parent
 
 # The layer folders from the bottom up; the package's `__init__` re-exports the first three.
-LAYERS = ["_core", "_host", "_writers", "__init__", "brax", "playground", "examples", "bench"]
+LAYERS = ["_core", "_host", "_writers", "__init__", "brax", "playground", "examples"]
 # Layers whose modules are checked one by one (a module there is a unit, e.g. `_core/_spec`).
 SPLIT = {"_core", "_host"}
 # What a writer sees (TagInfo, Record, the registries) must not pull in JAX.
@@ -96,6 +96,8 @@ def test_modules_import_only_their_layer_or_below(path):
     if own in PURE:
         assert ours - {own} <= PURE, f"{'/'.join(rel)} imports the JAX core: {ours - PURE}"
         assert "jax" not in others, f"{'/'.join(rel)} imports jax"
+    # The benchmarks are no part of the installed package.
+    assert "benchmarks" not in others, f"{'/'.join(rel)} imports the benchmarks"
 
 
 def test_no_module_imports_itself_through_others():
@@ -123,10 +125,11 @@ def test_no_module_imports_itself_through_others():
 TESTS = PACKAGE.parent / "tests"
 # The test folders, each with the package layers its tests pin, from the bottom up; a test
 # imports no module of a layer above its folder's. `import jaxmetrics` (the public names)
-# is allowed everywhere, as is the bench's HLO inspection (`bench._hlo`), which the tests
-# share with the bench.
-TEST_FOLDERS = {"core": 0, "host": 1, "writers": 2, "integrations": 5, "examples": 7, "docs": 7}
-SHARED_WITH_TESTS = {("bench", "_hlo")}
+# is allowed everywhere. Of the benchmarks (top-level `benchmarks/`, not installed), the
+# tests of the benchmarks (`examples`) import anything, the others only the HLO inspection
+# that the tests share with them.
+TEST_FOLDERS = {"core": 0, "host": 1, "writers": 2, "integrations": 5, "examples": 6, "docs": 6}
+SHARED_WITH_TESTS = {"benchmarks._hlo"}
 
 
 def test_tests_are_in_folders_by_layer_and_import_nothing_above_it():
@@ -144,9 +147,10 @@ def test_tests_are_in_folders_by_layer_and_import_nothing_above_it():
                     names = [f"{node.module}.{a.name}" for a in node.names]
                 for name in names:
                     parts = name.split(".")
+                    if parts[0] == "benchmarks" and folder != "examples":
+                        shared = ".".join(parts[:2]) in SHARED_WITH_TESTS
+                        assert shared, f"tests/{folder}/{path.name} imports {name}"
                     if parts[0] != "jaxmetrics" or len(parts) < 2:
-                        continue
-                    if tuple(parts[1:3]) in SHARED_WITH_TESTS:
                         continue
                     if parts[1] in LAYERS:
                         assert layer(parts[1]) <= top, f"tests/{folder}/{path.name} imports {name}"

@@ -25,8 +25,8 @@ from reference import SIMPLE_STATS, RefStream, episode_value
 from test_core_reductions import assert_stat_close
 
 import jaxmetrics as jm
+from benchmarks._hlo import COLLECTIVES
 from jaxmetrics._core._stream import SegmentPlan
-from jaxmetrics.bench._hlo import COLLECTIVES
 
 E, T = 12, 10
 FIRST = ("f0", "f1", "f2", "f3", "f4")

@@ -21,7 +21,7 @@ from reference import RefStream, episode_value
 from test_core_reductions import EMA_C, HIST, PCTS, STATS, WINDOW, assert_stat_close, compare
 
 import jaxmetrics as jm
-from jaxmetrics.bench._hlo import collectives, loop_body_ops
+from benchmarks._hlo import collectives, loop_body_ops
 
 E, T = 8, 10
 NAMES = ("flat", "rough", "stairs")

@@ -17,7 +17,7 @@ from reference import SIMPLE_STATS, RefEpisodes
 from test_core_reductions import EMA_C, HIST, PCTS, WINDOW, assert_reports_follow_reference
 
 import jaxmetrics as jm
-from jaxmetrics.bench._hlo import collectives, loop_body_ops
+from benchmarks._hlo import collectives, loop_body_ops
 
 E, T = 8, 10  # 8 envs finishing at once overflow the window (and any shard's share)
 REDUCTIONS = ("mean", "sum", "max", "std")

@@ -15,8 +15,8 @@ import os
 import numpy as np
 import pytest
 
-from jaxmetrics import bench
-from jaxmetrics.bench import _brax_results, _isolated, _profile, _render
+import benchmarks
+from benchmarks import _brax_results, _isolated, _profile, _render
 
 NUM_ENVS, STEPS = 64, 50
 ROLLOUT_STEPS = 30
@@ -87,7 +87,7 @@ def result(out_dir):
     path = out_dir / "out.json"
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        tables = bench.main([*ARGS, "--json", str(path), "--out-dir", str(out_dir / "sets")])
+        tables = benchmarks.main([*ARGS, "--json", str(path), "--out-dir", str(out_dir / "sets")])
     with open(path) as f:
         doc = json.load(f)
     return doc, tables, printed.getvalue()
@@ -192,7 +192,7 @@ def test_layout_floor_sums_the_finished_episodes_means():
     # summed per metric; against float64 numpy, step by step.
     import jax
 
-    from jaxmetrics.bench import _workload as wl
+    from benchmarks import _workload as wl
 
     xs, dones = (np.asarray(a, np.float64) for a in _isolated.inputs(NUM_ENVS, STEPS))
     state = wl.layout_floor_init(3, NUM_ENVS)
@@ -243,7 +243,7 @@ def test_loaded_rows_time_each_variant_after_the_env_step(result):
 def test_env_step_values_are_in_the_unit_interval_and_follow_the_action():
     import jax.numpy as jnp
 
-    from jaxmetrics.bench import _loaded
+    from benchmarks import _loaded
 
     x = _loaded.env_init(8)
     action = jnp.linspace(0.0, 1.0, 80, dtype=jnp.float32).reshape(10, 8)
@@ -258,17 +258,6 @@ def test_env_step_values_are_in_the_unit_interval_and_follow_the_action():
         x64 = 0.5 + 0.5 * np.sin(3.0 * x64 + i)
     np.testing.assert_allclose(a, x64, rtol=1e-5, atol=1e-6)
     assert not np.allclose(a[:10], b[:10])
-
-
-def test_graph_threshold_rows_are_the_loaded_rows_in_one_process():
-    from jaxmetrics.bench import _graph_threshold, _loaded
-
-    got = _graph_threshold.measure(16, ["sum"], [1], [8], steps=5, repeats=1)
-    want = _loaded.rows(16, ["sum"], [1], [8])
-    assert [(r["label"], r["num_envs"], r["terms"]) for r in got] == [
-        (w.label, w.num_envs, w.terms) for w in want
-    ]
-    assert all(r["us"] > 0 and r["floor_us"] > 0 and r["ops"] > 0 for r in got)
 
 
 @pytest.mark.slow
@@ -349,8 +338,8 @@ def test_each_scenario_is_written_to_its_own_file_which_renders(result, out_dir)
     rendered = _render.render(
         "".join(f"<!-- bench: {n} -->\n<!-- /bench -->\n" for n in docs), docs
     )
-    for t in tables[:-1]:  # every table but the targets
-        assert f"#### {t.title}\n" in rendered
+    for t in tables[:-1]:  # every table but the targets, the profiles left in the files
+        assert (f"#### {t.title}\n" in rendered) == (t.name not in _render.PROFILES), t.name
     # The document judges its targets on accelerators only.
     assert "cpu_" not in _render.targets_markdown(docs)
 
@@ -358,7 +347,7 @@ def test_each_scenario_is_written_to_its_own_file_which_renders(result, out_dir)
 @pytest.mark.parametrize("flag", ["--scenarios", "--e2e-variants"])
 def test_unknown_names_are_refused(capsys, flag):
     with pytest.raises(SystemExit):
-        bench.main([flag, "floor,nope"])
+        benchmarks.main([flag, "floor,nope"])
     assert f"unknown {flag[2:]} " in capsys.readouterr().err
 
 
@@ -383,7 +372,7 @@ def test_sharded_rows_count_the_collectives_of_each_layout(result):
 
 
 def test_period_end_table_times_emit_and_history_on_the_same_records():
-    from jaxmetrics.bench import _flush_cost
+    from benchmarks import _flush_cost
 
     t = _flush_cost.period_ends(num_envs=8, periods=3, every=2, repeats=1)
     rows = {r[0]: r for r in t.rows}
@@ -396,7 +385,7 @@ def test_period_end_table_times_emit_and_history_on_the_same_records():
 
 
 def test_timed_rounds_rotate_so_no_variant_always_runs_first():
-    from jaxmetrics.bench._timing import Variant, measure
+    from benchmarks._timing import Variant, measure
 
     calls = []
     variants = [Variant(n, lambda n=n: calls.append(n) or n) for n in "abc"]
@@ -420,8 +409,16 @@ def _committed() -> tuple[str, dict]:
 
 def test_committed_tables_are_what_the_committed_results_files_render_to():
     text, docs = _committed()
-    # On failure: `python -m jaxmetrics.bench --render` rewrites the tables from the files.
+    # On failure: `python -m benchmarks --render` rewrites the tables from the files.
     assert _render.render(text, docs) == text
+
+
+def test_the_results_page_stays_a_page_of_summaries():
+    # Issue 46: targets, how to run, one block per scenario; history stays in git.
+    text, docs = _committed()
+    assert text.count("\n") <= 500 and len(docs) <= 10
+    assert all("runs" not in doc for doc in docs.values())  # no per-run dumps
+    assert "/root/" not in text and "python -m jaxmetrics.bench" not in text
 
 
 def test_every_committed_results_file_renders_each_of_its_tables():
@@ -439,13 +436,15 @@ def test_every_committed_results_file_renders_each_of_its_tables():
 
 def test_render_keeps_the_prose_and_refuses_what_it_cannot_place():
     _, docs = _committed()
-    one = {"cpu_groups.json": docs["cpu_groups.json"]}
-    text = "Before.\n<!-- bench: cpu_groups.json -->\nstale\n<!-- /bench -->\nAfter.\n"
+    one = {"h100_groups.json": docs["h100_groups.json"]}
+    text = "Before.\n<!-- bench: h100_groups.json -->\nstale\n<!-- /bench -->\nAfter.\n"
     out = _render.render(text, one)
-    assert out.startswith("Before.\n<!-- bench: cpu_groups.json -->\n`cpu_groups.json`: cpu, ")
+    assert out.startswith(
+        "Before.\n<!-- bench: h100_groups.json -->\n`h100_groups.json`: NVIDIA H100 80GB HBM3, "
+    )
     assert out.endswith("<!-- /bench -->\nAfter.\n") and "stale" not in out
     assert _render.render(out, one) == out
-    with pytest.raises(ValueError, match=r"no block shows \['cpu_groups.json'\]"):
+    with pytest.raises(ValueError, match=r"no block shows \['h100_groups.json'\]"):
         _render.render("Prose only.\n", one)
     with pytest.raises(ValueError, match="'<!-- bench: gone.json -->' names no results file"):
         _render.render("<!-- bench: gone.json -->\n<!-- /bench -->\n", one)
@@ -454,15 +453,15 @@ def test_render_keeps_the_prose_and_refuses_what_it_cannot_place():
 def test_render_is_the_cli_s_render_step(tmp_path):
     text, docs = _committed()
     (tmp_path / "benchmarks").mkdir()
-    for name in ("cpu_groups.json", "h100_groups.json"):
+    for name in ("h100_flush.json", "h100_groups.json"):
         with open(tmp_path / "benchmarks" / name, "w") as f:
             json.dump(docs[name], f)
     stale = "<!-- bench: targets -->\n<!-- /bench -->\n" + "".join(
         f"<!-- bench: {n} -->\nSTALE\n<!-- /bench -->\n"
-        for n in ("cpu_groups.json", "h100_groups.json")
+        for n in ("h100_flush.json", "h100_groups.json")
     )
     (tmp_path / "benchmarks.md").write_text(stale)
-    assert bench.main(["--render", str(tmp_path / "benchmarks.md")]) == []
+    assert benchmarks.main(["--render", str(tmp_path / "benchmarks.md")]) == []
     out = (tmp_path / "benchmarks.md").read_text()
     groups = docs["h100_groups.json"]["scenarios"]["groups"]
     col = groups["columns"].index("x no groups")
@@ -474,7 +473,7 @@ def test_render_is_the_cli_s_render_step(tmp_path):
 
 def _ppo_run(call, variant, t_s, training_sps, reports=0):
     """A `_brax_train` run: 300 steps in three intervals, the first compiling."""
-    from jaxmetrics.bench._brax_train import _steady
+    from benchmarks._brax_train import _steady
 
     progress = [
         {"step": step, "t_s": t, "training_sps": sps, "eval_episode_reward": None}
@@ -496,7 +495,7 @@ def test_ppo_train_runs_are_compared_within_their_call_and_costed_per_report():
     alone = _ppo_run("d", "report_full", (0, 10, 11.5, 13), (None, 50, 80, 80), reports=100)
     doc = {"calls": {k: {"commit": "abc1234", "commands": ["cmd"], "notes": []} for k in "cd"}}
     doc["runs"] = [brax, slow, alone]
-    c, d = _brax_results.tables(doc)
+    c, d = _brax_results.call_tables(doc)
     assert c.rows[0][:7] == ["brax", 1, None, 100, 100, 0.0, 0.0]
     variant, _, records, steady, training, *over = c.rows[1]
     assert (variant, records, steady, training) == ("report_full", 100, 67, 80)
@@ -511,7 +510,7 @@ def test_ppo_train_runs_are_compared_within_their_call_and_costed_per_report():
 
 
 def test_ppo_train_outputs_merge_by_call():
-    from jaxmetrics.bench import _brax_train
+    from benchmarks import _brax_train
 
     def output(call, commit, command, variant):
         run = _ppo_run(call, variant, (0, 10, 11, 12), (None, 50, 100, 100))
@@ -530,7 +529,7 @@ def test_ppo_train_outputs_merge_by_call():
 
 
 def test_ppo_train_variant_names():
-    from jaxmetrics.bench._brax_train import OFTEN_REPORT_EVERY, RARE_REPORT_EVERY, parse_variant
+    from benchmarks._brax_train import OFTEN_REPORT_EVERY, RARE_REPORT_EVERY, parse_variant
 
     assert parse_variant("brax") == ("brax", None, None, "tensorboard")
     assert parse_variant("report_full_often") == (
@@ -545,18 +544,75 @@ def test_ppo_train_variant_names():
         parse_variant("report_full_sometimes")
 
 
-def test_env_sync_variants_report_only_where_they_call_back():
-    # Two tiny variants of the rollout bench on Playground's JAX physics: the reporting
-    # wrapper writes one record per call (the period is the call), a pure cond none.
-    import jaxmetrics.playground as jmp
-    from jaxmetrics.bench import _env_sync
+def test_ppo_train_summary_keeps_each_call_s_means_and_not_its_runs():
+    brax = _ppo_run("c", "brax", (0, 10, 11, 12), (None, 50, 100, 100))
+    often = _ppo_run("c", "report_full", (0, 10, 11.5, 13), (None, 50, 80, 80), reports=100)
+    meta = {"commit": "abc1234", "commands": ["cmd"], "notes": []}
+    env = {"device": "cpu", "device_count": 1, "jax": "0", "host": "machine"}
+    doc = {"environment": env, "calls": {"c": meta}, "runs": [brax, often]}
+    doc["summary"] = _brax_results.summarize(doc["runs"])
+    summary = _brax_results.summary_doc(doc)
+    assert "runs" not in summary and "host" not in summary["environment"]
+    assert summary["calls"]["c"] | meta == summary["calls"]["c"]
+    assert (summary["calls"]["c"]["num_envs"], summary["calls"]["c"]["num_timesteps"]) == (8, 300)
+    # The summary renders the output's table, the cost per report included.
+    table = _brax_results.summary_table(summary)
+    assert table.rows == _brax_results.summary_table(doc).rows
+    assert table.rows[1][:6] == ["c", "abc1234", "8, 0.0003M", "report_full", 1, 100]
+    np.testing.assert_allclose(table.rows[1][8:], [50.0, 25.0, 10.0, 5.0])
+    assert _render.tables(summary | {"benchmark": "brax_ppo_train"})[0].rows == table.rows
 
-    with jmp.default_promotion():  # the suite runs strict (conftest); Playground does not
-        rows = _env_sync.measure("jax", ["report", "cond_pure"], 4, 3, 1, profile=False)
-    assert [(r["variant"], r["records"]) for r in rows] == [("report", 2), ("cond_pure", 0)]
-    # On one device the report is the period end's conditional alone (no nested gather),
-    # as many as the pure cond has.
-    assert rows[0]["hlo_summary"]["conditional"] == rows[1]["hlo_summary"]["conditional"] >= 1
-    assert rows[0]["hlo_summary"]["custom-call:xla_ffi_python_cpu_callback"] == 1
-    with pytest.raises(ValueError, match="bad case"):
-        _env_sync.parse_case("warp;report,nope;")
+
+def test_brax_trainers_get_the_name_docs_brax_md_restores(monkeypatch):
+    import jax
+    import jax._src.api
+
+    from benchmarks._brax_train import restore_device_put_replicated
+
+    monkeypatch.setattr(jax, "device_put_replicated", None, raising=False)
+    monkeypatch.delattr(jax, "device_put_replicated")
+    restore_device_put_replicated()
+    assert jax.device_put_replicated is jax._src.api.device_put_replicated
+    theirs = object()  # a JAX that has the name keeps its own
+    monkeypatch.setattr(jax, "device_put_replicated", theirs)
+    restore_device_put_replicated()
+    assert jax.device_put_replicated is theirs
+
+
+def test_one_command_line_runs_the_trainer_benchmarks_too(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        benchmarks.main(["--help"])
+    usage = capsys.readouterr().out
+    assert usage.startswith("usage: python -m benchmarks")
+    for name in ("brax-train", "playground-train", "in-trainer", "channel"):
+        assert f"\n  {name} " in usage
+    with pytest.raises(SystemExit):
+        benchmarks.main(["brax-train", "--help"])
+    assert capsys.readouterr().out.startswith("usage: python -m benchmarks brax-train")
+    # A command runs its own main with the rest of the line: an empty in-trainer summary.
+    out = tmp_path / "in_trainer.json"
+    assert benchmarks.main(["in-trainer", "--commit", "abc", "--out", str(out)]) == []
+    with open(out) as f:
+        assert json.load(f) == {
+            "benchmark": "in_trainer",
+            "cases": [],
+            "device": None,
+            "jax": None,
+            "commit": "abc",
+        }
+
+
+def test_the_benchmarks_examples_run():
+    # pytest collects the package's doctests only (testpaths); the benchmarks' run here.
+    import doctest
+    import importlib
+    import pkgutil
+
+    names = [m.name for m in pkgutil.iter_modules(benchmarks.__path__) if m.name != "__main__"]
+    assert "_report" in names and "_cond_sync" not in names
+    tried = 0
+    for name in names:
+        result = doctest.testmod(importlib.import_module(f"benchmarks.{name}"))
+        assert result.failed == 0, name
+        tried += result.attempted
+    assert tried > 0

@@ -13,7 +13,7 @@ from brax import envs
 from tensorboard.backend.event_processing import event_accumulator
 
 import jaxmetrics.brax as jmb
-from jaxmetrics.bench import _hlo
+from benchmarks import _hlo
 from jaxmetrics.examples import ppo
 
 # The default config at a tenth of its budget: 30 iterations of 64 envs x 32 steps.

@@ -155,7 +155,7 @@ def distributed(per_device: int, steps: int, repeats: int, processes: int) -> Ta
         args = [per_device, steps, repeats, processes, port, out]
         procs = [
             subprocess.Popen(
-                [sys.executable, "-m", "jaxmetrics.bench._distributed", str(i), *map(str, args)],
+                [sys.executable, "-m", "benchmarks._distributed", str(i), *map(str, args)],
                 env=_process_env(i),
             )
             for i in range(processes)
@@ -176,6 +176,9 @@ def distributed(per_device: int, steps: int, repeats: int, processes: int) -> Ta
 
 def _process_env(i: int) -> dict[str, str]:
     env = dict(os.environ)
+    # `benchmarks` is no installed package: the worker finds it where this one was found.
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, (root, env.get("PYTHONPATH"))))
     if jax.default_backend() == "gpu":
         env["CUDA_VISIBLE_DEVICES"] = str(i)
     else:

@@ -2,7 +2,8 @@
 
 A per-step host callback logger is a reference row of the alternatives, not a target:
 the hand-written floor itself is less than 100x cheaper than that logger, so a ratio to
-it measured the rollout's noise, not jaxmetrics (docs/benchmarks.md).
+it measured the rollout's noise, not jaxmetrics (45x to 78x in two runs of one tree on an
+H100, `h100_e2e.json` the first).
 """
 
 from collections.abc import Callable, Sequence

@@ -1,7 +1,9 @@
-"""`python -m jaxmetrics.bench`: run the scenarios, print a table each, write JSON."""
+"""`python -m benchmarks`: run the scenarios, print a table each, write JSON; or one of the
+trainer benchmarks (`COMMANDS`), each with its own options."""
 
 import argparse
 import dataclasses
+import importlib
 import os
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -14,6 +16,18 @@ from ._report import Table, device_label, environment, write_json
 from ._targets import targets
 
 SCENARIOS = ("isolated", "loaded", "scaling", "groups", "flush", "e2e", "sharded")
+
+COMMANDS = {
+    "brax-train": ("_brax_train", "Brax's ppo.train on ant, Brax's wrapper against ours"),
+    "playground-train": (
+        "_playground_train",
+        "Playground's CartpoleBalance training, Playground's wrapper against ours",
+    ),
+    "in-trainer": ("_in_trainer", "one summary file of the two trainers' outputs"),
+    "channel": ("_channel", "the report channels side by side in a jitted loop"),
+}
+"""`python -m benchmarks COMMAND ...`: the module whose `main(argv)` runs it, and what it
+measures."""
 
 
 @dataclasses.dataclass
@@ -198,8 +212,12 @@ def _ints(s: str) -> tuple[int, ...]:
 
 def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace]:
     p = argparse.ArgumentParser(
-        prog="python -m jaxmetrics.bench",
-        description="What jaxmetrics costs, against the bare rollout and the alternatives.",
+        prog="python -m benchmarks",
+        description="What jaxmetrics costs, against the bare rollout and the alternatives. "
+        "Without a command: run the --scenarios.",
+        epilog="commands (python -m benchmarks COMMAND --help for their options):\n"
+        + "\n".join(f"  {name:<18}{what}" for name, (_, what) in COMMANDS.items()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     size = p.add_mutually_exclusive_group()
     size.add_argument("--quick", action="store_true", help="small sizes (default on CPU)")
@@ -218,7 +236,7 @@ def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace
     p.add_argument(
         "--json",
         default=None,
-        help="where to write every table as one JSON (default: jaxmetrics_bench_<backend>.json, "
+        help="where to write every table as one JSON (default: benchmarks_<backend>.json, "
         "unless --out-dir is given)",
     )
     p.add_argument(
@@ -288,13 +306,21 @@ def parse(argv: Sequence[str] | None = None) -> tuple[Config, argparse.Namespace
 # XLA captures a loop body in a CUDA graph only from this many kernels on (default 5);
 # below it the host launches each kernel and waits on the loop condition every step. A
 # rollout's body always holds the env step's kernels too, so the update's own scans here
-# run with every body captured, as in a rollout (docs/benchmarks.md, "In a loop with an
-# env step"). Set before the first use of the backend; an XLA_FLAGS that names the
+# run with every body captured, as in a rollout (docs/benchmarks.md, "What is
+# measured"). Set before the first use of the backend; an XLA_FLAGS that names the
 # threshold keeps its own.
 GRAPH_FLAG = "--xla_gpu_graph_min_graph_size"
 
 
 def main(argv: Sequence[str] | None = None) -> list[Table]:
+    """Runs what `argv` (default: the command line) asks; the scenarios' tables, or [] for
+    `--render` and the commands."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in COMMANDS:
+        # Before the graph threshold below: the trainers run with their own flags.
+        module = importlib.import_module(f".{COMMANDS[argv[0]][0]}", __package__)
+        module.main(argv[1:])
+        return []
     flags = os.environ.get("XLA_FLAGS", "")
     if GRAPH_FLAG not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} {GRAPH_FLAG}=1".strip()
@@ -304,11 +330,11 @@ def main(argv: Sequence[str] | None = None) -> list[Table]:
         print(f"rendered {args.render}", file=sys.stderr)
         return []
     print(
-        f"jaxmetrics.bench: preset {args.preset} on {jax.devices()[0].device_kind} "
+        f"benchmarks: preset {args.preset} on {jax.devices()[0].device_kind} "
         f"({jax.default_backend()})",
         flush=True,
     )
-    path = args.json or (None if args.out_dir else f"jaxmetrics_bench_{jax.default_backend()}.json")
+    path = args.json or (None if args.out_dir else f"benchmarks_{jax.default_backend()}.json")
     cfg = dataclasses.asdict(config)
     cfg["preset"] = args.preset
     env = environment(args.commit)

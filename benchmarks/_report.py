@@ -121,9 +121,7 @@ def environment(commit: str | None = None) -> dict[str, Any]:
         "versions": versions,
         "git_commit": commit or _git_commit(),
         "xla_flags": os.environ.get("XLA_FLAGS"),
-        "command": " ".join(
-            [os.path.basename(sys.executable), "-m", "jaxmetrics.bench"] + sys.argv[1:]
-        ),
+        "command": " ".join([os.path.basename(sys.executable), "-m", "benchmarks"] + sys.argv[1:]),
     }
 
 

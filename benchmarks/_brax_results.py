@@ -1,9 +1,10 @@
-"""What a `_brax_train` results file says, as numbers and tables (no Brax needed).
+"""What a `brax-train` output says, as numbers and tables (no Brax needed).
 
-A file holds runs of `ppo.train` from one or more device calls (`calls`: the tree, the
+An output holds runs of `ppo.train` from one or more device calls (`calls`: the tree, the
 commands). Runs are compared only with the Brax wrapper's runs of their own call: from
 one machine start to the next, Brax's own sps moves by about 1%, as much as what is
-measured.
+measured. `summary_doc` keeps what docs/benchmarks.md shows (per call and variant, the
+means and the costs), without the runs' progress calls and record arrivals.
 """
 
 import statistics
@@ -71,7 +72,8 @@ def _brax_rates(runs: Sequence[dict[str, Any]]) -> dict[str, float | None]:
 
 def summarize(runs: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """Per call, per variant: the mean steady and Brax sps over its runs, and each one's
-    overhead against the call's `brax` runs in % (time per step)."""
+    overhead against the call's `brax` runs in % (time per step); for the reporting
+    variants the reports per run and, where `report_cost` reads one, the ms per report."""
     out: dict[str, dict[str, Any]] = {}
     for call in dict.fromkeys(r["call"] for r in runs):
         in_call = [r for r in runs if r["call"] == call]
@@ -81,12 +83,16 @@ def summarize(runs: Sequence[dict[str, Any]]) -> dict[str, dict[str, Any]]:
             rs = [r for r in in_call if r["variant"] == v]
             steady = _mean([r["steady_sps"] for r in rs if r["steady_sps"]])
             training = _mean([r["brax_training_sps"] for r in rs if r["brax_training_sps"]])
+            costs = [report_cost(r, brax) for r in rs]
             out[call][v] = {
                 "runs": len(rs),
                 "steady_sps_mean": steady,
                 "brax_training_sps_mean": training,
                 "overhead_steady_pct": _over(brax["steady"], steady),
                 "overhead_brax_sps_pct": _over(brax["training"], training),
+                "reports_mean": _mean([r["records"] for r in rs if "records" in r]),
+                "ms_per_report_steady": _mean([c[0] for c in costs if c[0] is not None]),
+                "ms_per_report_training": _mean([c[1] for c in costs if c[1] is not None]),
             }
     return out
 
@@ -156,103 +162,82 @@ def call_table(call: str, meta: dict[str, Any], runs: Sequence[dict[str, Any]]) 
     return t
 
 
-def callback_split(times: dict[str, Any]) -> dict[str, list[float]]:
-    """Per report, in ms: JAX's host function before our `_on_emit` starts (copying the
-    operands to the CPU) and after it ends (the return to XLA, where a writer thread
-    holding the GIL makes it wait); from the raw `(start s, duration ms)` pairs."""
-    before, after = [], []
-    for (js, jd), (os_, od) in zip(times["raw"]["jax_callback"], times["raw"]["on_emit"]):
-        before.append(1e3 * (os_ - js))
-        after.append(jd - 1e3 * (os_ - js) - od)
-    return {"before": before, "after": after}
-
-
-def callback_table(runs: Sequence[dict[str, Any]]) -> Table:
-    """Where a report's host time goes, for the runs timed with `--time-callbacks`."""
-    t = Table(
-        "callbacks",
-        "Host side of a report (`--time-callbacks`), ms per report",
-        [
-            "call",
-            "variant",
-            "writer",
-            "reports",
-            "JAX host function, mean",
-            "max",
-            "copy to CPU, mean",
-            "`_on_emit`, mean",
-            "return to XLA, mean",
-            "max",
-            "writer job, mean",
-            "`write`, mean",
-        ],
-    )
-    for r in runs:
-        c = r["callback_times"]
-        split = callback_split(c)
-        t.add(
-            r["call"],
-            r["variant"],
-            r["writer"],
-            r["records"],
-            c["jax_callback"].get("mean_ms"),
-            c["jax_callback"].get("max_ms"),
-            _mean(split["before"]),
-            c["on_emit"].get("mean_ms"),
-            _mean(split["after"]),
-            max(split["after"], default=None),
-            c["writer_job"].get("mean_ms"),
-            c["write"].get("mean_ms"),
-        )
-    t.notes.append(
-        "JAX host function: JAX's own function around ours (`io_callback_impl`); copy to "
-        "CPU: its time before `Logger._on_emit` starts; return to XLA: its time after "
-        "`_on_emit` ends; writer job: the writer thread's work per record (unpack, "
-        "`Record`, every writer), beside training; `write`: the main writer's."
-    )
-    return t
-
-
-def probe_table(call: str, probe: dict[str, Any]) -> Table:
-    """What one ordered `io_callback` under `lax.cond` costs in a device loop."""
-    t = Table(
-        f"probe_{call}",
-        f"Call `{call}`: one ordered io_callback under lax.cond in a jitted loop of "
-        f"{probe['iters']:,} iterations, no Brax (`--callback-probe`)",
-        ["callback every", "callbacks per call", "ms per callback", "host function ms"]
-        + ["JAX host function ms"],
-    )
-    for r in probe["rows"]:
-        if r["period"]:
-            t.add(
-                r["period"],
-                r["callbacks_per_call"],
-                r["ms_per_callback"],
-                r["host_fn"].get("mean_ms"),
-                r["jax_callback"].get("mean_ms"),
-            )
-    t.notes.append(
-        "ms per callback: the loop's median time above the same loop with no callback "
-        "(the cond alone), over the callbacks made; host function: ours alone (a copy "
-        "and a sum of 1,452 bytes)."
-    )
-    return t
-
-
-def tables(doc: dict[str, Any]) -> list[Table]:
-    """Every table of a `_brax_train` results file: one per call, then the host side of
-    the timed reports and the callback probes."""
-    out = [
+def call_tables(doc: dict[str, Any]) -> list[Table]:
+    """One `call_table` per call of an output (its runs one by one)."""
+    return [
         call_table(call, meta, [r for r in doc["runs"] if r["call"] == call])
         for call, meta in doc["calls"].items()
         if any(r["call"] == call for r in doc["runs"])
     ]
-    timed = [r for r in doc["runs"] if "callback_times" in r]
-    if timed:
-        out.append(callback_table(timed))
-    out += [
-        probe_table(call, meta["callback_probe"])
-        for call, meta in doc["calls"].items()
-        if "callback_probe" in meta
-    ]
-    return out
+
+
+def summary_doc(doc: dict[str, Any]) -> dict[str, Any]:
+    """The summary of an output (or of a merge of outputs): its environment, calls and
+    `summarize`d runs, with each call's envs and steps; not the runs themselves."""
+    env = {k: v for k, v in doc["environment"].items() if k != "host"}
+    calls = {}
+    for call, meta in doc["calls"].items():
+        runs = [r for r in doc["runs"] if r["call"] == call]
+        if runs:
+            s = runs[0]["settings"]
+            calls[call] = {
+                "commit": meta["commit"],
+                "commands": meta["commands"],
+                "notes": meta["notes"],
+                "num_envs": s["num_envs"],
+                "num_timesteps": s["num_timesteps"],
+            }
+    return {
+        "benchmark": "brax_ppo_train",
+        "environment": env,
+        "calls": calls,
+        "summary": summarize(doc["runs"]),
+        "notes": list(doc.get("notes", [])),
+    }
+
+
+def summary_table(doc: dict[str, Any]) -> Table:
+    """Per call and variant of a summary (or an output): the means of its runs against
+    the call's `brax` runs, and the ms per report where enough reports were made."""
+    t = Table(
+        "brax_ppo_train",
+        "Inside Brax's `ppo.train`: per device call, means of the runs",
+        [
+            "call",
+            "tree",
+            "envs, steps",
+            "variant",
+            "runs",
+            "reports",
+            "steady sps",
+            "Brax training/sps",
+            "steady vs Brax %",
+            "training vs Brax %",
+            "ms per report, steady",
+            "ms per report, training",
+        ],
+        notes=list(doc.get("notes", [])),
+    )
+    for call, variants in doc["summary"].items():
+        meta = doc["calls"][call]
+        size = meta.get("num_envs"), meta.get("num_timesteps")
+        if size[0] is None:  # an output: the sizes are in its runs
+            run = next(r for r in doc["runs"] if r["call"] == call)
+            size = run["settings"]["num_envs"], run["settings"]["num_timesteps"]
+        for v, m in variants.items():
+            base = v == "brax"
+            t.add(
+                call,
+                _tree(meta["commit"]),
+                f"{size[0]:,}, {size[1] / 1e6:g}M",
+                v,
+                m["runs"],
+                None if m.get("reports_mean") is None else round(m["reports_mean"]),
+                _sps(m["steady_sps_mean"]),
+                _sps(m["brax_training_sps_mean"]),
+                None if base else m["overhead_steady_pct"],
+                None if base else m["overhead_brax_sps_pct"],
+                m.get("ms_per_report_steady"),
+                m.get("ms_per_report_training"),
+            )
+    return t

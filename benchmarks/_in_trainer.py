@@ -1,9 +1,9 @@
-"""Reporting inside a trainer the user does not own: one summary file of steady env steps/s
-per wrapper, from the outputs of `_playground_train` (Playground's CartpoleBalance) and
-`_brax_train` (Brax's `ant`), both Brax's `ppo.train`.
+"""`python -m benchmarks in-trainer`: reporting inside a trainer the user does not own, one
+summary file of steady env steps/s per wrapper, from the `--out` files of `playground-train`
+(Playground's CartpoleBalance) and `brax-train` (Brax's `ant`), both Brax's `ppo.train`.
 
-`python -m jaxmetrics.bench._in_trainer --playground A.json [B.json] --brax C.json
---commit <tree> --out docs/benchmarks/<device>_in_trainer.json`
+`python -m benchmarks in-trainer --playground A.json [B.json] --brax C.json
+--commit <tree> --out docs/benchmarks/<kind>_in_trainer.json`
 
 Per case (env, physics, num_envs): the steady env steps/s of every run, in run order, per
 wrapper: `own` (the trainer's own wrapper: Playground's `wrap_for_brax_training`, or Brax's
@@ -81,7 +81,11 @@ def table(doc: dict[str, Any]) -> Table:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks in-trainer",
+        description="One summary of steady env steps/s per wrapper inside ppo.train, from "
+        "playground-train and brax-train outputs.",
+    )
     p.add_argument("--playground", nargs="*", default=[])
     p.add_argument("--brax", nargs="*", default=[])
     p.add_argument("--commit", default=None)
@@ -93,7 +97,3 @@ def main(argv: Sequence[str] | None = None) -> None:
         json.dump(doc, f, indent=1)
         f.write("\n")
     print(table(doc).to_markdown("####"))
-
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,8 @@
-"""MuJoCo Playground's standard training of `CartpoleBalance` (Brax's `ppo.train`) with the
-reporting Playground wrapper against Playground's own, for MJX's Warp and JAX physics.
+"""`python -m benchmarks playground-train`: MuJoCo Playground's standard training of
+`CartpoleBalance` (Brax's `ppo.train`) with the reporting Playground wrapper against
+Playground's own, for MJX's Warp and JAX physics.
 
-`python -m jaxmetrics.bench._playground_train --runs warp:jaxmetrics,warp:playground,
+`python -m benchmarks playground-train --runs warp:jaxmetrics,warp:playground,
 jax:jaxmetrics,jax:playground --commit $(git rev-parse HEAD) --out F.json`
 
 Each run is what Playground's `learning/train_jax_ppo.py` does for a DM Control suite env:
@@ -10,8 +11,9 @@ Each run is what Playground's `learning/train_jax_ppo.py` does for a DM Control 
 seed 1, a separately loaded `eval_env`, and Playground's XLA flags; then
 `ppo.train(..., wrap_env_fn=W)` with W one of Playground's `wrapper.wrap_for_brax_training`
 (`playground`), the one-line change `functools.partial(jmp.wrap, metrics=metrics,
-logger=logger, report_every=...)` (`jaxmetrics`), or `jmp.wrap` with the same metrics and no
-logger (`fold`: it folds on every step and never reports). The metrics: episode return and
+logger=logger, report_every=...)` (`jaxmetrics`; `jaxmetrics_io` the same with
+`report_channel="io_callback"`), or `jmp.wrap` with the same metrics and no logger (`fold`:
+it folds on every step and never reports). The metrics: episode return and
 length and every reward component, each with mean, std, min, max, count and a window(100).
 What differs from Playground's config:
 
@@ -53,7 +55,6 @@ from collections.abc import Sequence
 from typing import Any
 
 import jax
-import jax._src.api
 
 import jaxmetrics as jm
 import jaxmetrics.playground as jmp  # before Brax and Playground (quiet imports)
@@ -61,12 +62,12 @@ import jaxmetrics.playground as jmp  # before Brax and Playground (quiet imports
 from ._brax_train import (
     ArrivalWriter,
     CompileCounter,
-    _device_put_replicated,
     _steady,
     _version,
     _write,
     closed,
     record_progress,
+    restore_device_put_replicated,
     run_times,
 )
 from ._brax_train import environment as brax_environment
@@ -327,7 +328,9 @@ def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
-        prog="python -m jaxmetrics.bench._playground_train", description=__doc__.split("\n")[0]
+        prog="python -m benchmarks playground-train",
+        description="Playground's CartpoleBalance training with the reporting wrapper against "
+        "Playground's own.",
     )
     p.add_argument(
         "--runs",
@@ -370,11 +373,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     ).strip()
     os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     os.environ.setdefault("MUJOCO_GL", "disable")
-    # Brax 0.14.2's ppo.train calls jax.device_put_replicated, gone from JAX 0.10's namespace.
-    if not hasattr(jax, "device_put_replicated"):
-        jax.device_put_replicated = getattr(
-            jax._src.api, "device_put_replicated", _device_put_replicated
-        )
+    restore_device_put_replicated()
     specs = [s for s in args.runs.split(",") if s]
     specs = [s for s in specs if args.impl is None or parse_run(s)[0] == args.impl]
     counter = CompileCounter()
@@ -413,7 +412,3 @@ def main(argv: Sequence[str] | None = None) -> None:
     print(json.dumps(doc.get("summary"), indent=1), flush=True)
     if any("error" in r for r in doc["runs"]):
         sys.exit(1)
-
-
-if __name__ == "__main__":
-    main()

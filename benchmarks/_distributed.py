@@ -1,6 +1,7 @@
 """One process of the `distributed` bench table (started by `_sharded.distributed`).
 
-`python -m jaxmetrics.bench._distributed ID PER_DEVICE STEPS REPEATS PROCESSES PORT OUT`:
+`python -m benchmarks._distributed ID PER_DEVICE STEPS REPEATS PROCESSES PORT OUT` (a
+worker process, started by the sharded scenario, not a command of its own):
 joins `jax.distributed` on localhost and runs the isolated update (10 random terms per
 step, no physics) over one global env batch of `PER_DEVICE` envs per device on every
 process's devices: the hand-written floor vs the full spec with a sharded state. It

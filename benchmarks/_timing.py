@@ -9,11 +9,7 @@ programs 0.67% apart, about the overhead being measured).
 """
 
 import dataclasses
-import json
-import os
 import statistics
-import subprocess
-import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -87,22 +83,3 @@ def rotated(items: Sequence[Any], r: int) -> list[Any]:
 def tree_bytes(tree: Any) -> int:
     """Bytes held by the arrays of a pytree."""
     return int(sum(x.nbytes for x in jax.tree.leaves(tree)))
-
-
-def in_fresh_process(module: str, args: Sequence[str], xla_flags: str) -> Any:
-    """What `python -m module --child *args` prints as JSON on its last line, run with
-    `xla_flags` added to `XLA_FLAGS` (XLA reads its flags once per process, so each
-    setting needs a process of its own).
-
-    Raises:
-      SystemExit: the child failed (an unknown XLA flag among them); its stderr says why.
-    """
-    env = {
-        **os.environ,
-        "XLA_FLAGS": " ".join(filter(None, (os.environ.get("XLA_FLAGS"), xla_flags))),
-    }
-    cmd = [sys.executable, "-m", module, "--child", *args]
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    if done.returncode:
-        raise SystemExit(f"{xla_flags or '(default flags)'}: {done.stderr[-3000:]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])

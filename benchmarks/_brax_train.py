@@ -1,8 +1,9 @@
-"""What the reporting Brax wrapper costs inside Brax's own trainer (`ppo.train`).
+"""`python -m benchmarks brax-train`: what the reporting Brax wrapper costs inside Brax's
+own trainer (`ppo.train`).
 
-`python -m jaxmetrics.bench._brax_train --env ant --num-envs 4096 --timesteps 10000000
+`python -m benchmarks brax-train --env ant --num-envs 4096 --timesteps 10000000
 --variants brax,report_full,report_mean --runs 2 --call overhead --commit $(git rev-parse HEAD)
---out F.json`
+--out F.json --summary docs/benchmarks/h100_brax_ppo_train.json`
 
 Runs `brax.training.agents.ppo.train` on `brax.envs.get_environment(env, backend="mjx")`
 with Brax's tuned PPO settings for `ant` (Brax's README), the same seed for every variant:
@@ -11,7 +12,7 @@ with Brax's tuned PPO settings for `ant` (Brax's README), the same seed for ever
 - `report_full`: `jaxmetrics.brax.wrap` with a `Logger` (TensorBoard), reporting by itself
   from inside the trainer; 11 terms for `ant` (episode return and length, and every
   `State.metrics` entry but `forward_reward`, which duplicates `reward_forward`) with the
-  bench's "full" statistics (`_workload.pattern_stats`: mean/std/min/max/sum/count, EMA,
+  benchmarks' "full" statistics (`_workload.pattern_stats`: mean/std/min/max/sum/count, EMA,
   window(100) with percentiles, histograms), default `report_every`.
 - `report_mean`: the same terms, mean + count only.
 - `report_all` (not run by default): every statistic on every term.
@@ -21,46 +22,28 @@ with Brax's tuned PPO settings for `ant` (Brax's README), the same seed for ever
   writer (what the report costs without event files).
 - `report_full_rare`: `report_full` with `report_every=RARE_REPORT_EVERY` (5M env steps:
   one or two reports per 10M-step run instead of 28): the per-step reporting machinery
-  (the int32 clock, the `lax.cond` on its predicate, the EMA history kept under `pmap`)
-  without the per-report cost (`all_gather`, compute, `io_callback`, writers).
+  without the per-report cost.
 - `report_full_often`: `report_full` with `report_every=OFTEN_REPORT_EVERY` (10x the
   reports: 288 per 10M-step run), where the per-report cost stands above the noise.
 
 Per run: the steady-state env steps per second between consecutive `progress_fn` calls
 (each interval includes Brax's evaluation; every interval in which a backend compile
-ended is left out: on this JAX the first two, as the training epoch compiles twice),
+ended is left out: on JAX 0.11 the first two, as the training epoch compiles twice),
 Brax's own `training/sps` (the training epoch alone, over the same epochs), the wall time
 of `ppo.train`, and for the reporting variants each record's arrival time relative to the
-start of training (it shows reports arriving while training runs). Results are written
-after every run, so a run cut short keeps the finished ones. Every run is tagged with
-`--call`, the device call it ran in, and compared only with the `brax` runs of the same
-call (`_brax_results`); `--merge A.json B.json --out C.json` joins the runs and calls of
-several outputs.
-
-`--time-callbacks` times the host side of every report of the reporting variants
-(`callback_times`, perf_counter): JAX's own host function around ours (`io_callback_impl`:
-the operands put on the CPU device, then our function), `Logger._on_emit` (numpy copies,
-queueing the job), the writer thread's job per record (`RunWriters.write_run`: unpack,
-`Record`, every writer) and the main writer's `write`; each with its start.
-`--callback-probe` measures, in a small jitted device loop (no Brax), what one ordered
-`io_callback` under `lax.cond` costs: the loop's time with a callback every k iterations
-against none.
-
-`--trace VARIANTS` takes a `jax.profiler` trace of the last interval of those variants'
-runs (left out of the steady figures) and stores a summary of it in the run's result
-(`trace_summary`: events per device/host line, the most frequent names, and every
-memcpy/sync/callback/conditional name); `hlo_summary` summarizes an optimized HLO dump
-(`XLA_FLAGS=--xla_dump_to=D --xla_dump_hlo_module_re=_fun`).
+start of training. Results are written after every run, so a run cut short keeps the
+finished ones. Every run is tagged with `--call`, the device call it ran in, and compared
+only with the `brax` runs of the same call (`_brax_results`). `--out` keeps every run
+(progress calls, arrivals: not for the repository); `--summary` writes the summary that
+docs/benchmarks.md renders; `--merge A.json B.json` joins the runs and calls of several
+`--out` files.
 """
 
 import argparse
-import collections
 import functools
-import glob
 import json
 import os
 import platform
-import re
 import shlex
 import shutil
 import statistics
@@ -72,13 +55,11 @@ from importlib import metadata
 from typing import Any
 
 import jax
-import jax._src.api
 
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb  # before Brax (quiet imports)
 
-from ._brax_results import summarize, tables
-from ._hlo import _BODY, _CALLS, _CONTAINERS, _opcode, _ops, _split_computations
+from ._brax_results import call_tables, summarize, summary_doc, summary_table
 from ._workload import pattern_stats
 
 VARIANTS = (
@@ -233,125 +214,6 @@ def parse_variant(variant: str) -> tuple[str, str | None, int | None, str]:
     return mode, features, every, "memory" if tag == "mem" else "tensorboard"
 
 
-def _ms_stats(xs: Sequence[float]) -> dict[str, Any]:
-    """Count, mean, median, p90, max and sum of durations in seconds, in ms."""
-    if not xs:
-        return {"n": 0}
-    ms = sorted(1e3 * x for x in xs)
-    return {
-        "n": len(ms),
-        "mean_ms": round(statistics.mean(ms), 4),
-        "median_ms": round(statistics.median(ms), 4),
-        "p90_ms": round(ms[min(len(ms) - 1, int(0.9 * len(ms)))], 4),
-        "max_ms": round(ms[-1], 4),
-        "sum_ms": round(sum(ms), 3),
-    }
-
-
-class CallbackTimes:
-    """Host-side timings of a reporting variant's reports (`--time-callbacks`).
-
-    - `jax_callback`: JAX's own host function of an `io_callback` (`io_callback_impl`:
-      the operands `device_put` on the CPU device, then ours), wrapped in the module for
-      the run (it is looked up there at every call);
-    - `on_emit`: `Logger._on_emit` (a `Logger` subclass: the logger binds it when built);
-    - `writer_job`: the writer thread's job per record (`RunWriters.write_run`: unpack,
-      build the `Record`, every writer);
-    - `write`: the main writer's `write` (its instance attribute, wrapped).
-
-    Each entry: (start in s after `t0`, duration in s)."""
-
-    def __init__(self, t0: float):
-        self.t0 = t0
-        self.times: dict[str, list[tuple[float, float]]] = {
-            "jax_callback": [], "on_emit": [], "writer_job": [], "write": [],
-        }  # fmt: skip
-        self.arg_types: list[str] | None = None
-        self._jax_module: Any = None
-        self._jax_impl: Any = None
-
-    def _note(self, key: str, start: float) -> None:
-        self.times[key].append((start - self.t0, time.perf_counter() - start))
-
-    def logger_class(self) -> type:
-        times = self
-
-        class TimedLogger(jm.Logger):
-            def _on_emit(self, packed: Any, step: Any, when: Any, run: Any) -> None:
-                t = time.perf_counter()
-                if times.arg_types is None:
-                    times.arg_types = [type(a).__name__ for a in (*packed, when)]
-                try:
-                    return super()._on_emit(packed, step, when, run)
-                finally:
-                    times._note("on_emit", t)
-
-            def __init__(self, *args: Any, **kwargs: Any) -> None:
-                super().__init__(*args, **kwargs)
-                write_run = self._runs.write_run
-
-                def timed_write_run(*args: Any, **kwargs: Any) -> None:
-                    t = time.perf_counter()
-                    try:
-                        return write_run(*args, **kwargs)
-                    finally:
-                        times._note("writer_job", t)
-
-                self._runs.write_run = timed_write_run
-
-        return TimedLogger
-
-    def wrap_writer(self, writer: Any) -> None:
-        write = writer.write
-
-        def timed_write(record: Any) -> None:
-            t = time.perf_counter()
-            try:
-                write(record)
-            finally:
-                self._note("write", t)
-
-        writer.write = timed_write
-
-    def patch_jax(self) -> bool:
-        """Wraps JAX's `io_callback_impl` (False where this JAX has none)."""
-        try:
-            from jax._src import callback as module
-        except ImportError:
-            return False
-        impl = getattr(module, "io_callback_impl", None)
-        if impl is None:
-            return False
-
-        def timed_impl(*args: Any, **kwargs: Any) -> Any:
-            t = time.perf_counter()
-            try:
-                return impl(*args, **kwargs)
-            finally:
-                self._note("jax_callback", t)
-
-        self._jax_module, self._jax_impl = module, impl
-        module.io_callback_impl = timed_impl
-        return True
-
-    def unpatch_jax(self) -> None:
-        if self._jax_module is not None:
-            self._jax_module.io_callback_impl = self._jax_impl
-            self._jax_module = None
-
-    def summary(self) -> dict[str, Any]:
-        out: dict[str, Any] = {k: _ms_stats([d for _, d in v]) for k, v in self.times.items()}
-        starts = [s for s, _ in self.times["on_emit"]]
-        gaps = [b - a for a, b in zip(starts, starts[1:])]
-        out["on_emit_interval"] = _ms_stats(gaps) if gaps else {"n": 0}
-        out["arg_types"] = self.arg_types
-        out["switch_interval_ms"] = 1e3 * sys.getswitchinterval()
-        out["raw"] = {
-            k: [(round(s, 4), round(1e3 * d, 4)) for s, d in v] for k, v in self.times.items()
-        }
-        return out
-
-
 def _dir_bytes(path: str) -> int:
     return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(path) for f in fs)
 
@@ -399,7 +261,6 @@ def run_times(t_train: float, counter: "CompileCounter", progress: list) -> dict
 def _steady(
     progress: list[dict[str, Any]],
     compiles: list[tuple[float, float]],
-    traced: Sequence[int] = (),
 ) -> dict:
     """Env steps per second between progress calls (the initial eval at step 0, then one
     per training epoch + eval), over the intervals in which nothing compiled.
@@ -407,11 +268,8 @@ def _steady(
     Brax compiles its training epoch in the first interval and, on this JAX, once more in
     the second (the first epoch's outputs come back with other types or layouts than
     the inputs it was traced with): `steady_sps` leaves out every interval in which a
-    backend compile ended, and the `traced` ones (profiled); `steady_sps_excl_first`
-    leaves out the first interval only."""
+    backend compile ended; `steady_sps_excl_first` leaves out the first interval only."""
     out: dict[str, Any] = {"intervals_sps": [], "compiling_intervals": []}
-    if traced:
-        out["traced_intervals"] = list(traced)
     for i, (a, b) in enumerate(zip(progress, progress[1:])):
         out["intervals_sps"].append((b["step"] - a["step"]) / (b["t_s"] - a["t_s"]))
         n = sum(a["t_s"] < t <= b["t_s"] for t, _ in compiles)
@@ -419,7 +277,7 @@ def _steady(
             out["compiling_intervals"].append(i)
     if compiles and progress:
         out["compiles_after_last_progress"] = sum(t > progress[-1]["t_s"] for t, _ in compiles)
-    skip = set(out["compiling_intervals"]) | set(traced)
+    skip = set(out["compiling_intervals"])
     clean = [(a, b) for i, (a, b) in enumerate(zip(progress, progress[1:])) if i not in skip]
     out["steady_intervals"] = len(clean)
     out["steady_sps"] = (
@@ -474,24 +332,14 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
         result["spec"] = desc
     if mode == "report":
         logdir = tempfile.mkdtemp(prefix=f"brax_train_{variant}_")
-    # A trace of the last interval: from the next-to-last progress call to the last
-    # (Brax calls progress_fn num_evals times: at step 0, then after each epoch + eval).
-    trace_at = settings["num_evals"] - 1 if variant in (args.trace or "").split(",") else None
-    trace: dict[str, Any] = {}
-    t0, t0_perf = time.time(), time.perf_counter()
+    t0 = time.time()
     counter.start(t0)
-    times = None
     if mode == "report":
         writer = ArrivalWriter(t0)
         main_writer = jm.MemoryWriter() if sink == "memory" else jm.TensorBoardWriter(logdir)
-        logger_class: Any = jm.Logger
-        if args.time_callbacks:
-            times = CallbackTimes(t0_perf)
-            logger_class = times.logger_class()
-            times.wrap_writer(main_writer)
-            result["jax_callback_timed"] = times.patch_jax()
-        logger = logger_class(metrics, [main_writer, writer])
+        logger = jm.Logger(metrics, [main_writer, writer])
         result["writer"] = type(main_writer).__name__
+        result["report_channel"] = logger.report_channel._asdict()
         extra["wrap_env_fn"] = functools.partial(
             jmb.wrap, metrics=metrics, logger=logger, report_every=report_every
         )
@@ -500,30 +348,19 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
 
     def progress_fn(step: int, m: dict[str, Any]) -> None:
         record_progress(progress, f"{variant} run {run}", t0, step, m)
-        if trace_at is not None and len(progress) in (trace_at, trace_at + 1):
-            _trace_toggle(trace, len(progress) == trace_at, args.trace_dir, variant, run)
 
     try:
         ppo.train(environment=env, progress_fn=progress_fn, **settings, **extra)
         t_train = time.time() - t0
     finally:
         counter.active = False
-        if times is not None:
-            times.unpatch_jax()
-        if trace.get("active"):
-            _trace_toggle(trace, False, args.trace_dir, variant, run)
         if logger is not None:
             result["logger_close_s"] = closed(logger)
     result.update(
         **run_times(t_train, counter, progress),
         compile_events=[(round(t, 2), round(d, 2)) for t, d in counter.events],
-        **_steady(progress, counter.events, [trace_at - 1] if trace.get("dir") else []),
+        **_steady(progress, counter.events),
     )
-    if trace:
-        trace.pop("active", None)
-        result["trace"] = trace
-    if times is not None:
-        result["callback_times"] = times.summary()
     if writer is not None:
         arr = writer.arrivals
         result.update(
@@ -541,214 +378,6 @@ def run_one(variant: str, run: int, args: argparse.Namespace, counter: CompileCo
         "report_every": report_every if mode == "report" else None,
     }
     return result
-
-
-def callback_probe(
-    iters: int = 3000, periods: Sequence[int] = (0, 300, 100, 30), repeats: int = 5
-) -> dict[str, Any]:
-    """What one ordered `io_callback` under `lax.cond` costs in a device loop like Brax's.
-
-    A jitted `fori_loop` of `iters` steps (8 small matmul + tanh kernels each, on a
-    4096 x 256 array) with a `lax.cond` per step that fires an ordered `io_callback` of a
-    1,452-byte operand (the size of a report) and the step every `period` steps (never
-    for 0: the cond, no callback). Per period: the median seconds of `repeats` calls after
-    a warm-up (one compile: the period is an argument), the callbacks made, the cost per
-    callback (`(t - t_0) / callbacks`), and the host function's own time."""
-    import numpy as np
-    from jax.experimental import io_callback
-
-    jnp = jax.numpy
-    host_s: list[float] = []
-    times = CallbackTimes(time.perf_counter())
-    patched = times.patch_jax()
-
-    def host(x: Any, i: Any) -> None:
-        t = time.perf_counter()
-        np.asarray(x).sum()
-        int(i)
-        host_s.append(time.perf_counter() - t)
-
-    def loop(x: Any, w: Any, period: Any) -> Any:
-        def body(i: Any, x: Any) -> Any:
-            for _ in range(8):
-                x = jnp.tanh(x @ w)
-
-            def fire(x: Any) -> Any:
-                io_callback(host, None, x[:2].reshape(-1)[:363], i, ordered=True)
-                return x
-
-            due = (period > 0) & (i % jnp.maximum(period, 1) == 0)
-            return jax.lax.cond(due, fire, lambda x: x, x)
-
-        return jax.lax.fori_loop(0, iters, body, x)
-
-    f = jax.jit(loop)
-    x = jnp.ones((4096, 256), jnp.float32)
-    w = jnp.eye(256, dtype=jnp.float32) * 0.5
-    out: dict[str, Any] = {"iters": iters, "repeats": repeats, "jax_callback_timed": patched}
-    try:
-        t = time.perf_counter()
-        f(x, w, 0).block_until_ready()
-        out["first_call_s"] = round(time.perf_counter() - t, 3)
-        rows = []
-        for period in periods:
-            f(x, w, period).block_until_ready()
-            host_s.clear()
-            for v in times.times.values():
-                v.clear()
-            ts = []
-            for _ in range(repeats):
-                t = time.perf_counter()
-                f(x, w, period).block_until_ready()
-                ts.append(time.perf_counter() - t)
-            calls = -(-iters // period) if period else 0
-            rows.append(
-                {
-                    "period": period,
-                    "callbacks_per_call": calls,
-                    "median_s": statistics.median(ts),
-                    "all_s": ts,
-                    "host_fn": _ms_stats(host_s),
-                    "jax_callback": _ms_stats([d for _, d in times.times["jax_callback"]]),
-                }
-            )
-        base = rows[0]["median_s"]
-        for r in rows[1:]:
-            r["ms_per_callback"] = 1e3 * (r["median_s"] - base) / r["callbacks_per_call"]
-        out["rows"] = rows
-    finally:
-        times.unpatch_jax()
-    return out
-
-
-def _trace_toggle(
-    trace: dict[str, Any], start: bool, trace_dir: str | None, variant: str, run: int
-) -> None:
-    """Starts or stops (and summarizes) a `jax.profiler` trace; errors are noted in
-    `trace["error"]`, never raised (a profile is a side show of the timing)."""
-    try:
-        if start:
-            d = tempfile.mkdtemp(prefix=f"trace_{variant}_{run}_", dir=trace_dir)
-            trace.update(dir=d, active=True)
-            jax.profiler.start_trace(d)
-            return
-        if not trace.get("active"):
-            return
-        t = time.time()
-        trace["active"] = False
-        jax.profiler.stop_trace()
-        trace["stop_s"] = round(time.time() - t, 2)
-        (path,) = glob.glob(os.path.join(trace["dir"], "**", "*.xplane.pb"), recursive=True)
-        trace["bytes"] = os.path.getsize(path)
-        t = time.time()
-        trace["summary"] = trace_summary(path)
-        trace["summarize_s"] = round(time.time() - t, 2)
-        if trace_dir is None:
-            shutil.rmtree(trace["dir"], ignore_errors=True)
-    except Exception as e:  # noqa: BLE001
-        trace["error"] = f"{type(e).__name__}: {e}"
-
-
-_NOTABLE = re.compile(r"memcpy|memset|sync|callback|conditional|cond\b|while|host", re.I)
-
-
-def trace_summary(path: str, top: int = 25) -> dict[str, Any]:
-    """Per line of every plane but the host CPU's (device streams, XLA ops/modules, CUDA
-    API calls): the number of events, their total time, the `top` most frequent names,
-    and every name that looks like a copy, a sync, a callback, a loop or a conditional."""
-    data = jax.profiler.ProfileData.from_file(path)
-    out: dict[str, Any] = {}
-    for plane in data.planes:
-        if plane.name == "/host:CPU":
-            continue
-        lines: dict[str, Any] = {}
-        for line in plane.lines:
-            count: collections.Counter[str] = collections.Counter()
-            ns: collections.Counter[str] = collections.Counter()
-            for e in line.events:
-                count[e.name] += 1
-                ns[e.name] += e.duration_ns
-            if not count:
-                continue
-            lines[line.name] = {
-                "events": sum(count.values()),
-                "total_ms": round(sum(ns.values()) / 1e6, 3),
-                "names": len(count),
-                "top": [[n, c, round(ns[n] / 1e3, 1)] for n, c in count.most_common(top)],
-                "notable": [
-                    [n, c, round(ns[n] / 1e3, 1)]
-                    for n, c in count.most_common()
-                    if _NOTABLE.search(n)
-                ][:100],
-            }
-        if lines:
-            out[plane.name] = lines
-    return out
-
-
-def hlo_summary(text: str) -> dict[str, Any]:
-    """What an optimized HLO module (`compiled.as_text()` or an XLA dump's
-    `*after_optimizations.txt`) holds: its ops (fusions counted as one; each loop body
-    once), custom-call targets, loops with and without a known trip count, and where
-    every `conditional` sits (the trip counts of the loops around it, outermost first)."""
-    comps, entry = _split_computations(text)
-    parent: dict[str, tuple[str, str, str | None]] = {}  # callee -> (caller, opcode, trips)
-    whiles = {"known_trip_count": 0, "unknown_trip_count": 0}
-    targets: collections.Counter[str] = collections.Counter()
-    conds: list[str] = []
-    for name, instrs in comps.items():
-        for instr in instrs:
-            op = _opcode(instr)
-            if op == "custom-call":
-                m = re.search(r'custom_call_target="([^"]+)"', instr)
-                targets[m.group(1) if m else "?"] += 1
-            if op not in _CONTAINERS:
-                continue
-            trips = None
-            if op == "while":
-                m = re.search(r'"known_trip_count":\{"n":"(\d+)"', instr)
-                trips = m.group(1) if m else "?"
-                whiles["known_trip_count" if m else "unknown_trip_count"] += 1
-            if op == "conditional":
-                conds.append(name)
-            callees = [m.group(1) for m in _BODY.finditer(instr)]
-            callees += re.findall(r"\b(?:true|false)_computation=%?([\w.\-]+)", instr)
-            for m in _CALLS.finditer(instr):
-                callees += [c.strip() for c in m.group(1).replace("%", "").split(",")]
-            for c in callees:
-                parent.setdefault(c, (name, op, trips))
-
-    def enclosing(name: str) -> list[str]:
-        trips: list[str] = []
-        seen: set[str] = set()
-        while name in parent and name not in seen:
-            seen.add(name)
-            name, op, n = parent[name]
-            if op == "while":
-                trips.append(n or "?")
-        return trips[::-1]
-
-    ops = collections.Counter(_ops(comps, entry, set())) if entry else collections.Counter()
-    return {
-        "ops": dict(ops.most_common()),
-        "custom_call_targets": dict(targets.most_common()),
-        "whiles": whiles,
-        "conditionals": [
-            {"in": c, "loop_trip_counts": enclosing(c)} for c in conds if not c.startswith("fused")
-        ],
-        "bytes": len(text),
-    }
-
-
-def hlo_dump_summary(directory: str, largest: int = 4) -> list[dict[str, Any]]:
-    """`hlo_summary` of the `largest` `*after_optimizations.txt` files of an XLA dump
-    (Brax's training epoch, a `pmap`, is named `jit__fun` by JAX's own `pmap`)."""
-    paths = glob.glob(os.path.join(directory, "*after_optimizations.txt"))
-    out = []
-    for path in sorted(paths, key=os.path.getsize, reverse=True)[:largest]:
-        with open(path) as fh:
-            out.append({"file": os.path.basename(path), **hlo_summary(fh.read())})
-    return out
 
 
 def _version(name: str) -> str | None:
@@ -782,25 +411,22 @@ def _write(path: str, doc: dict[str, Any]) -> None:
     os.replace(tmp, path)
 
 
-def _device_put_replicated(x: Any, devices: Sequence[Any]) -> Any:
-    """`jax.device_put_replicated` where JAX no longer has it: a leading axis of one copy
-    per device, split over the devices (what `pmap` takes)."""
-    import numpy as np
+def restore_device_put_replicated() -> None:
+    """What docs/brax.md tells users to run before Brax's `ppo.train`: Brax 0.14.2's
+    `ppo.train` calls `jax.device_put_replicated`, which JAX 0.10 removed from its public
+    namespace (the function is still in `jax._src.api`, in JAX 0.11.2 too), so the name is
+    restored. With a Brax that no longer calls it, or a JAX that still has it, it does
+    nothing."""
+    if not hasattr(jax, "device_put_replicated"):
+        from jax._src.api import device_put_replicated
 
-    sharding = jax.sharding.NamedSharding(
-        jax.sharding.Mesh(np.array(devices), ("d",)), jax.sharding.PartitionSpec("d")
-    )
-
-    def put(a: Any) -> jax.Array:
-        a = jax.numpy.asarray(a)
-        return jax.device_put(jax.numpy.broadcast_to(a, (len(devices), *a.shape)), sharding)
-
-    return jax.tree.map(put, x)
+        jax.device_put_replicated = device_put_replicated
 
 
 def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
-        prog="python -m jaxmetrics.bench._brax_train", description=__doc__.split("\n")[0]
+        prog="python -m benchmarks brax-train",
+        description="What the reporting Brax wrapper costs inside Brax's ppo.train.",
     )
     p.add_argument("--env", default="ant")
     p.add_argument("--backend", default="mjx")
@@ -824,18 +450,19 @@ def _parse(argv: Sequence[str] | None) -> argparse.Namespace:
         help="name of this device call: runs are compared with the brax runs of the same call",
     )
     p.add_argument("--note", default=None, help="free text stored with the call")
-    p.add_argument("--out", default=None)
+    p.add_argument("--out", default=None, help="every run (progress calls, record arrivals)")
+    p.add_argument(
+        "--summary",
+        default=None,
+        help="where to write the summary docs/benchmarks.md renders "
+        "(docs/benchmarks/<kind>_brax_ppo_train.json)",
+    )
     p.add_argument("--explain-cache-misses", action="store_true", help="log why JAX recompiles")
     p.add_argument(
-        "--trace", default=None, help="variants whose last interval to profile (comma-separated)"
-    )
-    p.add_argument("--trace-dir", default=None, help="keep the raw traces here (default: drop)")
-    p.add_argument("--time-callbacks", action="store_true", help="time each report's host side")
-    p.add_argument(
-        "--callback-probe", action="store_true", help="what one io_callback costs (no Brax)"
-    )
-    p.add_argument(
-        "--merge", nargs="+", default=None, help="join these outputs' runs and calls into --out"
+        "--merge",
+        nargs="+",
+        default=None,
+        help="run nothing: join these --out files' runs and calls into --out and --summary",
     )
     return p.parse_args(argv)
 
@@ -866,8 +493,15 @@ def merge(docs: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 def _print_tables(doc: dict[str, Any]) -> None:
-    for t in tables(doc):
+    for t in [*call_tables(doc), summary_table(doc)]:
         print(t.to_markdown(), flush=True)
+
+
+def _write_outputs(args: argparse.Namespace, doc: dict[str, Any]) -> None:
+    if args.out:
+        _write(args.out, doc)
+    if args.summary and doc["runs"]:
+        _write(args.summary, summary_doc(doc))
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -879,23 +513,18 @@ def main(argv: Sequence[str] | None = None) -> None:
                 docs.append(json.load(fh))
         doc = merge(docs)
         _print_tables(doc)
-        if args.out:
-            _write(args.out, doc)
+        _write_outputs(args, doc)
         return
     variants = [v for v in args.variants.split(",") if v]
     for v in variants:
         if v not in VARIANTS:
             sys.exit(f"unknown variant {v!r}; choose from {', '.join(VARIANTS)}")
-    # Brax 0.14.2's ppo.train calls jax.device_put_replicated, gone from JAX 0.10's namespace.
-    if not hasattr(jax, "device_put_replicated"):
-        jax.device_put_replicated = getattr(
-            jax._src.api, "device_put_replicated", _device_put_replicated
-        )
+    restore_device_put_replicated()
     if args.explain_cache_misses:
         jax.config.update("jax_explain_cache_misses", True)
     counter = CompileCounter()
     command = " ".join(
-        ["python", "-m", "jaxmetrics.bench._brax_train"]
+        ["python", "-m", "benchmarks", "brax-train"]
         + [shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)]
     )
     call: dict[str, Any] = {
@@ -912,12 +541,6 @@ def main(argv: Sequence[str] | None = None) -> None:
         "runs": [],
     }
     print(json.dumps(doc["environment"]), flush=True)
-    if args.callback_probe:
-        call["callback_probe"] = callback_probe()
-        for r in call["callback_probe"]["rows"]:
-            print({k: v for k, v in r.items() if k != "all_s"}, flush=True)
-        if args.out:
-            _write(args.out, doc)
     # Runs interleave the variants (run 1 of each, then run 2 of each) against drift.
     for run in range(args.first_run, args.first_run + args.runs):
         for v in variants:
@@ -933,10 +556,5 @@ def main(argv: Sequence[str] | None = None) -> None:
                 f"records {r.get('records')}",
                 flush=True,
             )
-            if args.out:
-                _write(args.out, doc)
+            _write_outputs(args, doc)
     _print_tables(doc)
-
-
-if __name__ == "__main__":
-    main()

@@ -25,6 +25,9 @@ from ._targets import NOTE, order, targets
 
 DOC = "docs/benchmarks.md"
 TARGETS = "targets"
+PROFILES = ("kernels", "group_kernels")
+"""Tables the page leaves in the files: `--profile`'s device time per kernel (diagnostics
+of where a step goes, a dozen rows of kernel names each)."""
 BLOCK = re.compile(r"(<!-- bench: (\S+) -->\n)(.*?)(<!-- /bench -->)", re.S)
 
 
@@ -45,21 +48,17 @@ def load(directory: str) -> dict[str, dict[str, Any]]:
 
 
 def tables(doc: dict[str, Any]) -> list[Table]:
-    """The tables of one results file: a bench run's scenarios (its stored targets left
-    out: `render` judges the targets again), or a `_brax_train` file's calls."""
+    """The tables of one results file that the page shows: a scenario run's tables (its
+    stored targets left out: `render` judges the targets again; `PROFILES` too), or a
+    trainer benchmark's summary."""
     if doc.get("benchmark") == "brax_ppo_train":
-        return _brax_results.tables(doc)
+        return [_brax_results.summary_table(doc)]
     if doc.get("benchmark") == "playground_ppo_train":
         return [_playground_table(doc)]
-    if doc.get("benchmark") == "cond_sync":
-        return [_cond_sync_table(doc)]
-    if doc.get("benchmark") == "graph_threshold":
-        return [_graph_threshold_table(doc)]
-    if doc.get("benchmark") == "env_sync":
-        return [_env_sync_table(doc)]
     if doc.get("benchmark") == "in_trainer":
         return [_in_trainer.table(doc)]
-    return [Table.from_dict(n, d) for n, d in doc["scenarios"].items() if n != TARGETS]
+    shown = [(n, d) for n, d in doc["scenarios"].items() if n not in (TARGETS, *PROFILES)]
+    return [Table.from_dict(n, d) for n, d in shown]
 
 
 def _playground_table(doc: dict[str, Any]) -> Table:
@@ -77,139 +76,36 @@ def _playground_table(doc: dict[str, Any]) -> Table:
     return t
 
 
-def _cond_sync_table(doc: dict[str, Any]) -> Table:
-    """Microseconds per step of a scanned step of small kernels, per XLA_FLAGS setting."""
-    from ._cond_sync import VARIANTS
-
-    n = doc["sizes"]
-    t = Table(
-        "cond_sync",
-        f"A step of {n['kernels']} small kernels over {n['envs']:,} floats, us/step",
-        ["XLA_FLAGS", *VARIANTS],
-        notes=[doc["note"]] if doc.get("note") else [],
-    )
-    for row in doc["rows"]:
-        t.add(
-            f"`{row['xla_flags']}`" if row["xla_flags"] else "(default)",
-            *(row["us_per_step"].get(v, "") for v in VARIANTS),
-        )
-    return t
-
-
-def _graph_threshold_table(doc: dict[str, Any]) -> Table:
-    """The isolated rows' us/step, the floor's and ours, per XLA_FLAGS setting."""
-    runs = doc["runs"]
-    tags = [r["xla_flags"].removeprefix("--xla_gpu_") or "default" for r in runs]
-    n = doc["sizes"]
-    t = Table(
-        "graph_threshold",
-        f"Isolated update per XLA_FLAGS setting: {n['steps']}-step scan, us/step",
-        [
-            "variant",
-            "envs",
-            "terms",
-            "ops in loop (floor, ours)",
-            *(f"{c} ({tag})" for tag in tags for c in ("floor", "ours", "x floor")),
-        ],
-        notes=[
-            "Each setting in a fresh process: "
-            + "; ".join(
-                f"{tag}: `XLA_FLAGS={r['xla_flags']}`" if r["xla_flags"] else f"{tag}: none set"
-                for tag, r in zip(tags, runs)
-            )
-            + ". Median of interleaved repeats, the floor and every variant of a size in "
-            "one timing."
-        ],
-    )
-    for k, row in enumerate(runs[0]["rows"]):
-        cells = []
-        for r in runs:
-            other = r["rows"][k]
-            cells += [other["floor_us"], other["us"], other["us"] / other["floor_us"]]
-        t.add(
-            row["label"], row["num_envs"], row["terms"], f"{row['floor_ops']}, {row['ops']}", *cells
-        )
-    return t
-
-
-def _env_sync_table(doc: dict[str, Any]) -> Table:
-    """Per case and variant: ms per step against Playground's wrap of the same case, and
-    what one profiled call ran per step."""
-    n = doc["sizes"]
-    t = Table(
-        "env_sync",
-        f"Playground's CartpoleBalance, {n['envs']:,} envs, pmapped {n['steps']}-step scan, "
-        "ms/step",
-        [
-            "physics",
-            "XLA_FLAGS",
-            "variant",
-            "ms/step",
-            "vs playground %",
-            "graph launches",
-            "device events",
-            "D2H copy on the stream",
-            "GPU busy us",
-        ],  # fmt: skip
-        notes=[
-            "Per step of the profiled call: graph launches: CUDA graphs the host launched "
-            "(XLA's command buffers, Warp's own graph); device events: kernels, memsets "
-            "and copies the GPU ran; D2H copy: whether a device-to-host copy ran on the "
-            "stream (a conditional run from the host copies its predicate there each step); "
-            "GPU busy: the device events' summed time.",
-            *([doc["note"]] if doc.get("note") else []),
-        ],
-    )
-    for case in doc["cases"]:
-        rows = {r["variant"]: r for r in case["rows"]}
-        base = rows.get("playground")
-        flags = f"`{case['xla_flags']}`" if case["xla_flags"] else "(default)"
-        if "error" in case and not rows:
-            t.add(case["impl"], flags, "failed: " + case["error"], *[""] * 6)
-        for v, r in rows.items():
-            tc = r["trace_counts"]
-            t.add(
-                case["impl"],
-                flags,
-                v,
-                round(r["ms_per_step"], 3),
-                "" if base is None or v == "playground"
-                else round(100 * (r["ms_per_step"] / base["ms_per_step"] - 1), 1),
-                tc["graph_launches_per_step"],
-                round(sum(tc["device_events_per_step"].values()), 1),
-                "yes" if any("MemcpyD2H" in k for k in tc["device_events_per_step"]) else "no",
-                round(tc["gpu_busy_us_per_step"]),
-            )  # fmt: skip
-    return t
-
-
 def _versions(v: Mapping[str, Any]) -> str:
     names = ("jax", "jaxlib", "brax", "mujoco-mjx", "mujoco_mjx", "playground", "warp_lang")
     return ", ".join(f"{n.replace('_', '-')} {v[n]}" for n in names if v.get(n))
 
 
+OUTPUT_OPTIONS = ("--json", "--out-dir", "--kind", "--commit", "--note", "--hlo-dir")
+"""Options of a recorded command that say where its results went, not what was measured."""
+
+
+def command(recorded: str) -> str:
+    """A recorded command line as it runs now: `python -m benchmarks` (the benchmarks were
+    `jaxmetrics.bench` when the older files were recorded) with the options that shape
+    the measurement, without `OUTPUT_OPTIONS` (paths of the machine it ran on).
+
+    >>> command("python3 -m jaxmetrics.bench --full --note tree abc --out-dir /root/out/c")
+    'python -m benchmarks --full'
+    """
+    words = recorded.split()
+    at = next(i for i, w in enumerate(words) if w == "-m") + 2
+    kept, skipping = ["python", "-m", "benchmarks"], False
+    for w in words[at:]:
+        if w.startswith("--"):
+            skipping = w.split("=")[0] in OUTPUT_OPTIONS
+        if not skipping:
+            kept.append(w)
+    return " ".join(kept)
+
+
 def source(name: str, doc: dict[str, Any]) -> str:
     """Where and how a results file was measured, in one paragraph."""
-    if doc.get("benchmark") == "graph_threshold":
-        n = doc["sizes"]
-        tree = f", tree `{doc['commit'][:7]}`" if doc.get("commit") else ""
-        return (
-            f"`{name}`: {doc['device']}{tree}; jax {doc['jax']}; median of {n['repeats']} "
-            f"calls per variant."
-        )
-    if doc.get("benchmark") == "cond_sync":
-        n = doc["sizes"]
-        return (
-            f"`{name}`: {doc['device']}; jax {doc['jax']}; median of {n['repeats']} calls "
-            f"of a {n['steps']}-step scan."
-        )
-    if doc.get("benchmark") == "env_sync":
-        e, n = doc["environment"], doc["sizes"]
-        return (
-            f"`{name}`: {e['device']}; jax {e['jax']}, mujoco-mjx {e['mujoco_mjx']}, playground "
-            f"{e['playground']}, warp-lang {e['warp_lang']}; median of {n['repeats']} calls per "
-            "variant, each case (physics, XLA_FLAGS) in a fresh process."
-        )
     if doc.get("benchmark") == "in_trainer":
         return (
             f"`{name}`: {doc['device']}, tree `{doc['commit']}`; jax {doc['jax']}. Runs of "
@@ -227,8 +123,9 @@ def source(name: str, doc: dict[str, Any]) -> str:
     if doc.get("benchmark") == "brax_ppo_train":
         device = f"{env['device']} x{env['device_count']}"
         return (
-            f"`{name}`: {device}; {_versions(env)}. One table per device call (each names "
-            "the tree it measured); runs are compared with the `brax` runs of their own call."
+            f"`{name}`: {device}; {_versions(env)}. One row per device call and variant (each "
+            "call names the tree it measured); runs are compared with the `brax` runs of their "
+            "own call."
         )
     dev = env["device"]
     device = dev["kind"] + (f" x{dev['count']}" if dev["count"] > 1 else "")
@@ -236,7 +133,7 @@ def source(name: str, doc: dict[str, Any]) -> str:
     flags = f" (`XLA_FLAGS={env['xla_flags']}`)" if env.get("xla_flags") else ""
     return (
         f"`{name}`: {device}, {env['date'][:10]}{tree}; {_versions(env['versions'])}; "
-        f"`{env['command']}`{flags}."
+        f"`{command(env['command'])}`{flags}."
     )
 
 

@@ -1,7 +1,8 @@
 """Benchmarks: what jaxmetrics costs, against the bare rollout and the alternatives.
 
-Run `python -m jaxmetrics.bench --help`; results and how they were taken are in
-docs/benchmarks.md. Needs the `brax` extra for the end-to-end scenarios.
+Not part of the installed package: run them from a checkout's root, `python -m benchmarks
+--help`. Results and how they were taken are in docs/benchmarks.md. The end-to-end,
+many-device and trainer benchmarks need the `brax` extra (the Playground one `playground`).
 """
 
 from ._cli import FULL as FULL

@@ -1,4 +1,5 @@
-"""The report channels side by side in a jitted loop: records and time per step.
+"""`python -m benchmarks channel`: the report channels side by side in a jitted loop, records
+and time per step.
 
 A scanned step of `--kernels` small dependent kernels (each its own kernel) over `--envs`
 floats (a cheap env step, where a host round trip per step shows), logging one value per
@@ -8,7 +9,7 @@ of the same period in place of the emit (`cond_pure`). Each variant runs `--repe
 after a warm-up; the records of both channels are checked equal to each other and
 to a float64 reference of the period means.
 
-`python -m jaxmetrics.bench._channel --out F.json`
+`python -m benchmarks channel --out F.json`
 """
 
 import argparse
@@ -61,7 +62,10 @@ def _time(run: Any, x: jax.Array, repeats: int) -> list[float]:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks channel",
+        description="The report channels side by side in a jitted loop: records and time per step.",
+    )
     p.add_argument("--envs", type=int, default=2048)
     p.add_argument("--kernels", type=int, default=100)
     p.add_argument("--steps", type=int, default=1000)
@@ -119,7 +123,3 @@ def main(argv: Sequence[str] | None = None) -> None:
         }
         with open(args.out, "w") as f:
             json.dump(doc, f, indent=1)
-
-
-if __name__ == "__main__":
-    main()
