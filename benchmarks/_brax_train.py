@@ -57,7 +57,7 @@ from typing import Any
 import jax
 
 import jaxmetrics as jm
-import jaxmetrics.brax as jmb  # before Brax (quiet imports)
+import jaxmetrics.brax as jmb
 
 from ._brax_results import call_tables, summarize, summary_doc, summary_table
 from ._workload import pattern_stats

@@ -119,7 +119,8 @@ def flush(env_list: list[int], repeats: int) -> Table:
         t.data[str(n)] = {"packed_bytes": int(sum(a.nbytes for a in out))}
     t.notes += [
         "compute+reset: the jitted `compute` + `reset_period` (state donated), blocked on; "
-        "device_get: that plus `jax.device_get` of the report dict (one copy per entry); "
+        "device_get: that plus `jax.device_get` of the report (one copy per column: per "
+        "statistic, not per tag); "
         "to_host: that plus `Metrics.to_host` (floats, exact ints, numpy arrays); packed: "
         "the same report concatenated in-graph into one float and one uint32 buffer, "
         "then `device_get` (two copies); Logger.flush: `jm.Logger(spec, [MemoryWriter()])"

@@ -57,7 +57,7 @@ from typing import Any
 import jax
 
 import jaxmetrics as jm
-import jaxmetrics.playground as jmp  # before Brax and Playground (quiet imports)
+import jaxmetrics.playground as jmp
 
 from ._brax_train import (
     ArrivalWriter,

@@ -39,7 +39,7 @@ class Rollout:
         metrics: jm.Metrics | None = None,
         sharding: jax.sharding.NamedSharding | None = None,
     ):
-        from jaxmetrics import brax as jmb  # before Brax: MuJoCo without its warp lines
+        from jaxmetrics import brax as jmb
 
         from brax import envs  # isort: skip
         from brax.envs.wrappers import training  # isort: skip
