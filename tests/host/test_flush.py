@@ -437,7 +437,7 @@ def _grouped(n: int) -> jm.Metrics:
 def test_the_report_program_does_not_grow_with_the_groups():
     """The flush packs the report's columns (a gather per run of tags), not a slice per
     tag: one per group and statistic made the first flush take minutes."""
-    from jaxmetrics import _programs
+    from jaxmetrics._host import _programs
 
     def ops(n):
         m = _grouped(n)
