@@ -23,6 +23,7 @@ import jax
 from .._core import _stream, _tags
 from .._core._metrics import Metrics
 from .._core._metrics_state import MetricsState
+from .._core._report import Report
 from .._core._sharding import mesh_of, placed, replicated
 from .._core._tags import TagInfo
 from ._record import derived_tags
@@ -90,13 +91,13 @@ def tag_table(metrics: Metrics, include_running: bool) -> tuple[TagInfo, ...]:
 def _build(metrics: Metrics, runs: int, include_running: bool) -> ReportPrograms:
     metrics_ref = weakref.ref(metrics)
 
-    def report(state: MetricsState) -> dict[str, Any]:
+    def report(state: MetricsState) -> Report:
         return metrics_ref().compute(state, include_running=include_running)  # type: ignore[union-attr]
 
     shapes = jax.eval_shape(lambda: report(metrics.init(1)))
     infos = [i for i in tag_table(metrics, include_running) if i.tag in shapes]
-    # Each statistic's tags side by side: the packed arrays are then a few whole columns
-    # of the report (XLA merges adjacent slices of one array), not a piece per tag.
+    # Each statistic's tags side by side: the packed arrays are then a few runs of the
+    # report's columns (a gather each, `Packer.pack`), not a piece per tag.
     layout = [i.tag for i in sorted(infos, key=lambda i: i.stat)]
     packer = Packer(shapes, [i.tag for i in infos], metrics.dtype, layout)
 

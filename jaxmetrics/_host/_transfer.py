@@ -1,8 +1,8 @@
 """The report's trip to the host, packed in-graph into two flat arrays.
 
-A report is a dict of ~10 small arrays per metric; copying and fetching each one costs a
-dispatch and a Python call per leaf, which dominates a flush long before the bytes do.
-`pack` concatenates every float statistic into one vector and every exact count (the
+A report holds ~10 small statistics per metric (and per group); copying and fetching
+each one costs a dispatch and a Python call per leaf, which dominates a flush long before
+the bytes do. `pack` concatenates every float statistic into one vector and every exact count (the
 `Count` hi/lo words) into one `[2, K]` uint32 array, and `joined` makes those one uint32
 array, so a flush moves one.
 `unpack` restores the host report (floats, exact Python ints, numpy arrays), like
@@ -10,7 +10,7 @@ array, so a flush moves one.
 """
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any, NamedTuple
 
 import jax
@@ -19,6 +19,7 @@ import numpy as np
 
 from .._core import _count
 from .._core._count import Count
+from .._core._report import Report
 
 
 class _Slot(NamedTuple):
@@ -32,8 +33,8 @@ class Packer:
     """Packs the reports of one spec; the layout is fixed when the packer is built.
 
     Args:
-      report: the report's shapes, e.g. `jax.eval_shape` of `Metrics.compute`: tag ->
-        `jax.ShapeDtypeStruct` (anything with a `shape`), or a `Count` of them.
+      report: the report's shapes: `jax.eval_shape` of `Metrics.compute`, a `Report` of
+        `jax.ShapeDtypeStruct` columns.
       order: the tags in the order `unpack` returns them (every tag of `report`).
       dtype: the float dtype of the packed statistics.
       layout: the tags in the order they lie in the packed arrays (default `order`).
@@ -46,7 +47,7 @@ class Packer:
 
     def __init__(
         self,
-        report: Mapping[str, Any],
+        report: Report,
         order: Sequence[str],
         dtype: Any,
         layout: Sequence[str] | None = None,
@@ -55,42 +56,50 @@ class Packer:
         if sorted(order) != sorted(report) or sorted(layout) != sorted(report):
             raise ValueError("Packer: `order` and `layout` must list every tag of the report once.")
         self.dtype = jnp.dtype(dtype)
-        slots, f_off, c_off = {}, 0, 0
+        # A tag's shape is its column's less the row axis: read off the columns, not cut
+        # from them tag by tag (tens of thousands of tags with many groups).
+        counted = [isinstance(c, Count) for c in report.columns]
+        shapes = [tuple(jax.tree.leaves(c)[0].shape[1:]) for c in report.columns]
+        slots, size = {}, {False: 0, True: 0}
+        # The packed arrays as runs of tags of one column, each run one gather of static
+        # rows: a few ops whatever the number of tags (a slice per tag was thousands).
+        runs: dict[bool, list[tuple[int, list[int]]]] = {False: [], True: []}
         for tag in layout:
-            v = report[tag]
-            if isinstance(v, Count):
-                slots[tag] = _Slot(tag, True, c_off, tuple(v.hi.shape))
-                c_off += math.prod(v.hi.shape)
+            c, j = report.layout.at[tag]
+            kind = counted[c]
+            slots[tag] = _Slot(tag, kind, size[kind], shapes[c])
+            size[kind] += math.prod(shapes[c])
+            if runs[kind] and runs[kind][-1][0] == c:
+                runs[kind][-1][1].append(j)
             else:
-                slots[tag] = _Slot(tag, False, f_off, tuple(v.shape))
-                f_off += math.prod(v.shape)
-        self._layout = tuple(slots[tag] for tag in layout)
+                runs[kind].append((c, [j]))
         self._slots = tuple(slots[tag] for tag in order)
-        self.num_floats, self.num_counts = f_off, c_off
+        self.num_floats, self.num_counts = size[False], size[True]
+        self._runs = {k: [(c, np.asarray(at, np.int32)) for c, at in v] for k, v in runs.items()}
+        self._report_layout = report.layout
+        self._shapes = _shapes(report)
 
-    def pack(self, report: Mapping[str, Any]) -> tuple[jax.Array, jax.Array]:
+    def pack(self, report: Report) -> tuple[jax.Array, jax.Array]:
         """In-graph: `(floats [F], counts uint32 [2, K])`.
 
         Raises:
           ValueError: the report's tags or shapes differ from the layout.
         """
-        if sorted(report) != sorted(s.tag for s in self._slots):
+        if not isinstance(report, Report) or report.layout != self._report_layout:
             raise ValueError(self._DIFFERS)
-        floats, his, los = [], [], []
-        for s in self._layout:
-            v = report[s.tag]
-            a = v.hi if isinstance(v, Count) else jnp.asarray(v)
-            if isinstance(v, Count) != s.is_count or tuple(a.shape) != s.shape:
-                raise ValueError(self._DIFFERS)
-            if isinstance(v, Count):
-                his.append(jnp.ravel(v.hi))
-                los.append(jnp.ravel(v.lo))
-            else:
-                floats.append(jnp.ravel(a).astype(self.dtype))
+        if _shapes(report) != self._shapes:
+            raise ValueError(self._DIFFERS)
+
+        def taken(column: jax.Array, at: np.ndarray) -> jax.Array:
+            whole = np.array_equal(at, np.arange(column.shape[0]))
+            return jnp.ravel(column if whole else column[at])
+
+        floats = [taken(report.columns[c], at).astype(self.dtype) for c, at in self._runs[False]]
+        counts = [[taken(a, at) for a in report.columns[c]] for c, at in self._runs[True]]
         f = jnp.concatenate(floats) if floats else jnp.zeros((0,), self.dtype)
         c = (
-            jnp.stack([jnp.concatenate(his), jnp.concatenate(los)])
-            if his
+            jnp.stack([jnp.concatenate(words) for words in zip(*counts)])
+            if counts
             else jnp.zeros((2, 0), jnp.uint32)
         )
         return f, c
@@ -154,3 +163,7 @@ class Packer:
                 a = floats[s.offset : s.offset + n].reshape(s.shape)
                 out[s.tag] = float(a) if a.ndim == 0 else a
         return out
+
+
+def _shapes(report: Report) -> list[tuple[int, ...]]:
+    return [tuple(a.shape) for a in jax.tree.leaves(report)]
