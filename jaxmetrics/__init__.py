@@ -3,6 +3,7 @@
 Please don't use symbols from the private `_*` modules: everything public is re-exported here.
 """
 
+from ._checkpoint import MetricsCheckpoint as MetricsCheckpoint
 from ._count import Count as Count
 from ._history import History as History
 from ._logger import Logger as Logger
@@ -58,6 +59,7 @@ __all__ = [
     "MLflowWriter",
     "MemoryWriter",
     "Metrics",
+    "MetricsCheckpoint",
     "MetricsState",
     "NonFiniteError",
     "ReportsLostError",
