@@ -172,7 +172,7 @@ def _ablation(reporter: Any, kind: str) -> Any:
                 period = self.period_calls(num_envs, steps_per_call) * self.batch_env_steps(
                     num_envs, steps_per_call
                 )
-                state = self.logger.emit_from_wrapper(state, self._step(state), when, period)
+                state = self.logger.emit_from_wrapper(state, self._step(state), when, period, self)
             elif kind == "where":
                 new = self.metrics.reset_period(state)
                 state = jax.tree.map(lambda n, o: jnp.where(when, n, o), new, state)
