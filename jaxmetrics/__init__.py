@@ -3,6 +3,7 @@
 Please don't use symbols from the private `_*` modules: everything public is re-exported here.
 """
 
+from ._core._checkpoint import MetricsCheckpoint as MetricsCheckpoint
 from ._core._count import Count as Count
 from ._core._metrics import Metrics as Metrics
 from ._core._metrics_state import MetricsState as MetricsState
@@ -49,6 +50,7 @@ __all__ = [
     "MLflowWriter",
     "MemoryWriter",
     "Metrics",
+    "MetricsCheckpoint",
     "MetricsState",
     "NonFiniteError",
     "ReportsLostError",

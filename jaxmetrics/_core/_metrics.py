@@ -14,6 +14,7 @@ from ._report import Report, ReportLayout
 from ._sharding import like, shard_count, state_mesh
 from ._spec import Groups, Logged, MetricSpec, Term, reported
 from ._tags import TagInfo
+from ._validate import is_int
 
 
 def _leading_shape(state: MetricsState) -> tuple[int, ...]:
@@ -188,10 +189,12 @@ class Metrics:
         )
 
     @staticmethod
-    def to_checkpoint(state: MetricsState) -> MetricsState:
-        """The state with its zero-size arrays (statistics the spec does not keep) set to
-        None, for orbax-checkpoint, which refuses to save zero-size arrays. Restore
-        with `from_checkpoint`. flax.serialization takes the state as it is.
+    def to_checkpoint(state: MetricsState) -> "_checkpoint.MetricsCheckpoint":
+        """The state as saved: a `MetricsCheckpoint` of the state with its zero-size arrays
+        (statistics the spec does not keep) set to None, for orbax-checkpoint, which
+        refuses to save zero-size arrays, and of its layout (env shards and envs), so that
+        a restore into another layout is told apart. Restore with `from_checkpoint`.
+        flax.serialization takes the state as it is, or this tree.
 
         Examples:
           >>> import orbax.checkpoint as ocp, tempfile, jaxmetrics as jm
@@ -208,16 +211,49 @@ class Metrics:
         """
         return _checkpoint.to_checkpoint(state)
 
-    def from_checkpoint(self, saved: MetricsState, target: MetricsState) -> MetricsState:
-        """A state restored from `to_checkpoint`'s tree: its None leaves become `target`'s
-        zero-size arrays (`target`: `init` with the same `num_envs` and sharding).
+    def checkpoint_target(self, num_envs: int, shards: int = 1) -> "_checkpoint.MetricsCheckpoint":
+        """The restore target of a checkpoint saved with `shards` env shards (1 unsharded;
+        the devices of the env axis when sharded) of `num_envs` envs, on the default
+        device: orbax restores arrays into the target's shapes, so a checkpoint of another
+        device count is restored against this one, then laid out by `from_checkpoint`.
 
-        Restore the checkpoint with its target (orbax: `ckpt.restore(path,
-        metrics.to_checkpoint(target))`), so that it comes back as a MetricsState; a
-        tree of another structure (orbax's target-less restore gives plain dicts), shape
-        or dtype is refused here, before any of it is used.
+        Examples:
+          >>> import jaxmetrics as jm
+          >>> metrics = jm.Metrics(terms={"r": jm.Term(lambda r: r)})
+          >>> [int(v) for v in metrics.checkpoint_target(16, shards=4).layout]
+          [4, 16]
         """
-        return _checkpoint.from_checkpoint(saved, self._check_state(target, "from_checkpoint"))
+        if not (is_int(num_envs) and is_int(shards) and num_envs >= 0 and shards >= 0) or (
+            num_envs % shards if shards else num_envs
+        ):
+            raise ValueError(
+                f"checkpoint_target: {num_envs!r} envs in {shards!r} env shards is not the "
+                "layout of a state (ints, the envs split evenly over at least one shard, or "
+                "0 envs in 0 shards); pass the layout from_checkpoint's error names."
+            )
+        return _checkpoint.target(self._rows, int(num_envs), int(shards))
+
+    def from_checkpoint(self, saved: Any, target: MetricsState) -> MetricsState:
+        """A restored state, laid out like `target` (`init` with the `num_envs` and the
+        sharding of the run that goes on): JAX arrays on the target's devices.
+
+        `saved` is `to_checkpoint`'s tree as restored (orbax: `ckpt.restore(path,
+        metrics.to_checkpoint(target))`), or a whole state as flax.serialization restores
+        it (host arrays). Its None leaves become zero-size arrays. A checkpoint of another
+        number of devices (env shards) is restored exactly: its shards are merged (as
+        `compute` merges them) into the target's first shard, so every later report is the
+        one the saved run would have made; orbax needs a target of the checkpoint's own
+        layout for it (`checkpoint_target`).
+
+        Raises:
+          ValueError: for a checkpoint of another number of envs (the running episodes
+            belong to their envs), one whose arrays orbax cut or padded to another layout
+            (`strict=False`), or a tree of another spec, structure, shape or dtype
+            (orbax's target-less restore gives plain dicts), each naming both layouts.
+        """
+        return _checkpoint.from_checkpoint(
+            self._rows, saved, self._check_state(target, "from_checkpoint")
+        )
 
     def empty(self) -> MetricsState:
         """The identity of `merge`: a state of zero envs with nothing recorded."""
@@ -236,6 +272,10 @@ class Metrics:
                 "spec that updates it; to restore a checkpoint, build the spec exactly as "
                 "the one that saved it."
             )
+        if any(isinstance(x, np.ndarray) for x in jax.tree.leaves(state)):
+            # flax.serialization restores host arrays; the in-graph functions index the
+            # state's arrays with `.at`, which only JAX arrays have.
+            state = jax.tree.map(jnp.asarray, state)
         lead = _leading_shape(state)
         if lead:
             raise ValueError(

@@ -3,8 +3,8 @@
 The in-graph emit (`_emit_in_graph`) makes one ordered `io_callback` per period end, carrying
 every vmapped seed's packed report, step, `when` and run index. `EmitReceiver` keeps the
 seeds whose period ended and queues one writer job per record. A reporting wrapper's
-steps are env steps, which restart when a trainer resets its envs; `EnvStepsContinuation`
-carries them on from the run's last record.
+steps are env steps, which start again where a wrapper is stepped from a fresh state;
+`EnvStepsContinuation` carries them on from the run's last record.
 """
 
 import functools
@@ -33,13 +33,15 @@ def _shifted(host: HostReport, tag: str, offset: int) -> dict[str, Any]:
 
 
 class EnvStepsContinuation:
-    """A reporting wrapper's step and env-step count, continued across env resets.
+    """A reporting wrapper's step and env-step count, continued where they start again.
 
-    A trainer that resets its envs (Brax's `num_resets_per_eval`) restarts the wrapper's
-    statistics and env-step count; its next record would go back in steps. The record's
-    step and `Counters/env_steps` continue from the run's last record instead: the steps
-    between that record and the reset are not counted (none when the period divides the
-    steps between resets).
+    Brax's PPO hands its env resets the last env state, and the wrapper carries its
+    statistics and count through them. A wrapper stepped from a fresh state again (a
+    trainer that resets its envs without handing the state over, or `wrapped.init` called
+    again in a loop of one's own) restarts them, and its next record would go back in
+    steps. The record's step and `Counters/env_steps` continue from the run's last record
+    instead, with a notice: the steps between that record and the restart, if any, are
+    not counted. (A second training on the same Logger is refused at trace time.)
 
     Args:
       runs: the number of runs.
@@ -61,9 +63,12 @@ class EnvStepsContinuation:
         if last is not None and raw <= last:
             self._offset[run] += last
             self._reports.notice(
-                f"run {run}: the envs were reset after step {self._offset[run]} (e.g. "
-                "Brax's num_resets_per_eval): windows and EMAs restarted, and episodes ended "
-                "since that record were not reported; records go on from that step"
+                f"run {run}: the reporting wrapper's env steps started again after its record "
+                f"at step {self._offset[run]}: its envs were reset by a trainer that does not "
+                "hand it their last state (Brax's ppo.train does, and its resets lose "
+                "nothing), or it was stepped from a fresh state again (wrapped.init). Records "
+                "go on from that step; windows and EMAs restarted, and what the envs did "
+                "between that record and the restart, if anything, is in no record"
             )
         self._raw[run] = raw
         offset = self._offset[run]

@@ -223,6 +223,9 @@ class Logger(AbstractContextManager):
         )
         self._history_id = _history.layout_id(metrics.config_id, self.include_running)
         self._wrapper_periods: set[int] = set()  # of the reporting wrappers traced
+        # The reporting wrapper whose reports this Logger takes: its steps are that
+        # training's env steps, which another training's would go back over.
+        self._wrapper: object | None = None
         self._timer_prefix = timer_prefix
         self._timer_tags: set[str] = set()
         self._timers = Timers()
@@ -437,17 +440,29 @@ class Logger(AbstractContextManager):
         return self._emit(state, step, when, run)
 
     def emit_from_wrapper(
-        self, state: MetricsState, step: Count, when: jax.Array, period: int
+        self, state: MetricsState, step: Count, when: jax.Array, period: int, source: object
     ) -> MetricsState:
         """The reporting wrappers' in-graph emit (`_wrapper_reporter.ReportSink`), not for user
         code: the step is an exact `Count` (env steps pass 2^31 in long runs), and under
         `vmap` each seed's position on the vmapped axis is its run. `period` (env steps)
-        is kept to say, at `close`, why no record came if none did."""
+        is kept to say, at `close`, why no record came if none did. `source` is the
+        wrapper's reporter: a Logger takes the reports of one (trace time)."""
         if self._thread.closed:
             raise RuntimeError(
                 "the Logger given to a reporting wrapper (jmb.wrap, jmp.wrap, "
                 "jm.wrap_step(..., logger=)) is closed; give the wrapper an open Logger "
                 "(create a new one for each training)."
+            )
+        if self._wrapper is None:
+            self._wrapper = source
+        elif self._wrapper is not source:
+            raise ValueError(
+                "this Logger already takes the reports of another reporting wrapper (jmb.wrap, "
+                "jmp.wrap, jm.wrap_step(..., logger=)): an earlier training's, as each "
+                "ppo.train builds its env anew. This training's records would go on from that "
+                "one's last step, while its own steps (Brax's progress) start from 0 again. "
+                "Create a new Logger for each training: jm.Logger(metrics, writers), with "
+                "writers of a directory of its own."
             )
         state = self._wrapper_emit(state, step, when, jnp.zeros((), jnp.int32))
         self._wrapper_periods.add(int(period))  # traced: it reports unless never run

@@ -34,10 +34,11 @@ class ReportSink(Protocol):
     include_running: bool  # the reports have running episodes (gathered with the rest)
 
     def emit_from_wrapper(
-        self, state: MetricsState, step: Count, when: jax.Array, period: int
+        self, state: MetricsState, step: Count, when: jax.Array, period: int, source: object
     ) -> MetricsState:
         """In-graph: reports `state` at `step` where `when`, and resets the period there;
-        `period` is the wrapper's period in env steps over all envs and devices."""
+        `period` is the wrapper's period in env steps over all envs and devices, `source`
+        the wrapper's `Reporter` (a sink takes the reports of one training's wrapper)."""
         ...
 
 
@@ -151,7 +152,8 @@ class Reporter:
         if (axis_size(self.axis_name) or 1) == 1:
             # One device (Brax's trainers pmap over one): nothing to gather, and no
             # collective in the period-end branch.
-            return self.logger.emit_from_wrapper(state, self._step(state), when, period), clock
+            step = self._step(state)
+            return self.logger.emit_from_wrapper(state, step, when, period, self), clock
         name = self.axis_name
         assert name is not None  # an axis of more than one device
 
@@ -159,7 +161,7 @@ class Reporter:
             merged = self._gathered(state, name)
 
             def write() -> None:
-                self.logger.emit_from_wrapper(merged, self._step(merged), when, period)
+                self.logger.emit_from_wrapper(merged, self._step(merged), when, period, self)
 
             jax.lax.cond(jax.lax.axis_index(name) == 0, write, lambda: None)
 

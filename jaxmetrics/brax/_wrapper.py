@@ -115,6 +115,29 @@ def _in_brax_evaluator() -> bool:
     return False
 
 
+def _brax_reset_from(wrapper: Wrapper) -> State | None:
+    """The env state Brax's PPO resets `wrapper`'s env from, when it resets the envs
+    between epochs (`num_resets_per_eval > 0`), else None.
+
+    Brax resets them through `reset_fn_donated_env_state(env_state_donated, key_envs)`,
+    which is handed the last state and drops it (it calls `env.reset(key_envs)`); this
+    reads it from that frame, so that the wrapper's statistics survive the reset. Trace
+    time only, as `_in_brax_evaluator`; the frame's `env` must be this wrapper's stack, so
+    a state of another env is never taken.
+    """
+    frame = sys._getframe(1)
+    while frame is not None:
+        if frame.f_code.co_name == "reset_fn_donated_env_state" and str(
+            frame.f_globals.get("__name__")
+        ).startswith("brax."):
+            env, state = frame.f_locals.get("env"), frame.f_locals.get("env_state_donated")
+            while isinstance(env, Wrapper) and env is not wrapper:
+                env = env.env
+            return state if env is wrapper and isinstance(state, State) else None
+        frame = frame.f_back
+    return None
+
+
 def _check_inner(env: Env) -> None:
     e = env
     while isinstance(e, Wrapper):
@@ -150,7 +173,9 @@ class MetricsWrapper(Wrapper):
     sit below `AutoResetWrapper`, so that terms see the terminal state of each episode.
     The MetricsState is not per env: code that maps over every `info` leaf assuming a
     leading env axis must leave `info[STATE_KEY]` alone. `reset` starts a fresh
-    MetricsState. `Counters/env_steps` counts sub-steps (env steps x `action_repeat`,
+    MetricsState, except for a reporting wrapper that Brax's PPO resets between epochs
+    (`num_resets_per_eval`): its statistics, counters and period go on, and only the
+    running episodes end. `Counters/env_steps` counts sub-steps (env steps x `action_repeat`,
     Brax's `num_timesteps` convention). As with Brax's `EpisodeWrapper`, without an
     `AutoResetWrapper` above it envs keep stepping past `done`, and every further step
     with `done` set counts as an episode.
@@ -173,7 +198,9 @@ class MetricsWrapper(Wrapper):
         at the report (no communication on other steps) and one report is written for
         all envs. Under `vmap` over seeds, seed `i` reports to the logger's run `i`.
         Envs stepped by Brax's evaluator (its `EvalWrapper`) fold but never report: the
-        training statistics hold training episodes only. None: fold only.
+        training statistics hold training episodes only. A logger takes the reports of
+        one wrapper (one training): another one's step is refused at trace time. None:
+        fold only.
       report_every: the period in env steps over all envs and devices (sub-steps, like
         Brax's `num_timesteps`); a report is made at the first env step that reaches it.
         None: every 100 env steps of the batch (`100 * num_envs * action_repeat`).
@@ -250,11 +277,20 @@ class MetricsWrapper(Wrapper):
             episode_metrics=episode_metrics,
         )
         if self.reporter is None or self.sharding is not None:
-            info[STATE_KEY] = self.metrics.init(done.shape[0], sharding=self.sharding)
+            mstate = self.metrics.init(done.shape[0], sharding=self.sharding)
         else:
-            info[STATE_KEY] = self.reporter.init(done.shape[0])
+            mstate = self.reporter.init(done.shape[0])
         if self.reporter is not None:
-            info[CLOCK_KEY] = jnp.zeros((), jnp.int32)
+            clock = jnp.zeros((), jnp.int32)
+            previous = _brax_reset_from(self)
+            if previous is not None:
+                # Brax resets the envs, not the training: statistics, windows, EMAs,
+                # counters and the period go on, so records keep Brax's step and none is
+                # lost; only the running episodes end, unfinished, with their envs.
+                mstate = previous.info[STATE_KEY]._replace(running=mstate.running)
+                clock = previous.info[CLOCK_KEY]
+            info[CLOCK_KEY] = clock
+        info[STATE_KEY] = mstate
         # flax.struct adds `replace` to Brax's State at run time.
         return _strong_types(state.replace(info=info))  # pyright: ignore[reportAttributeAccessIssue]
 

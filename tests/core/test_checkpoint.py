@@ -1,7 +1,9 @@
 """A MetricsState saved mid-run (orbax-checkpoint, flax.serialization) and restored into a
 fresh process's spec continues exactly as the uninterrupted run: windows, EMA, histograms,
 quantile sketches, counters and running episodes (discounted returns included) carry over
-bit for bit, sharded or not."""
+bit for bit, sharded or not. Restored into another number of devices, it continues equal to
+a float64 reference; into another number of envs, or cut to another layout by orbax's
+strict=False, it is refused naming both layouts."""
 
 import functools
 import os
@@ -68,10 +70,11 @@ def report(m, state):
 
 
 def save_restore(kind, state, tmp_path, target):
-    if kind == "flax":
-        return flax.serialization.from_bytes(target, flax.serialization.to_bytes(state))
-    # orbax refuses zero-size arrays (statistics the spec does not keep): to_checkpoint.
     m = spec()
+    if kind == "flax":
+        restored = flax.serialization.from_bytes(target, flax.serialization.to_bytes(state))
+        return m.from_checkpoint(restored, target)
+    # orbax refuses zero-size arrays (statistics the spec does not keep): to_checkpoint.
     with ocp.StandardCheckpointer() as ckpt:
         ckpt.save(tmp_path / "ckpt", m.to_checkpoint(state))
         ckpt.wait_until_finished()
@@ -156,12 +159,120 @@ def test_a_restore_without_target_or_of_another_shape_is_refused_at_once(tmp_pat
         ckpt.save(tmp_path / "ckpt", m.to_checkpoint(state))
         ckpt.wait_until_finished()
         targetless = ckpt.restore(tmp_path / "ckpt")
-    with pytest.raises(ValueError, match=r"\(dict\) is not the MetricsState.*with its target"):
+    with pytest.raises(ValueError, match=r"\(dict\) is not the MetricsCheckpoint.*with its target"):
         m.from_checkpoint(targetless, m.init(E))
     # Saved with 8 envs, restored into a target of 4.
     with pytest.raises(
-        ValueError, match=r"\.running\.\w+ is \w+\[\d+, 8\], but the target has \w+\[\d+, 4\]"
+        ValueError, match=r"is of 8 envs in 1 env shard, but the target is of 4 envs in 1 env"
     ):
         m.from_checkpoint(m.to_checkpoint(state), m.init(E // 2))
     restored = m.from_checkpoint(m.to_checkpoint(state), m.init(E))
     assert jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.array_equal(a, b)), restored, state))
+
+
+C, W = 0.1, 5
+
+
+def plain_spec():
+    """What `reference` computes: the episode sums' statistics, EMA and window."""
+    stats = ("mean", "std", "min", "max", "count", jm.ema(C), jm.window(W))
+    return jm.Metrics(
+        terms={"r": jm.Term(lambda x: x, reduce="sum", stats=stats)},
+        logged=["loss"],
+        counters=["updates"],
+    )
+
+
+def reference(xs: np.ndarray, dones: np.ndarray) -> dict[str, float]:
+    """In float64, over the whole run: the statistics of the returns of the episodes that
+    ended, in order of step, then env index."""
+    acc, ended = np.zeros(xs.shape[1]), []
+    for t in range(xs.shape[0]):
+        acc += xs[t].astype(np.float64)
+        for e in np.flatnonzero(dones[t]):
+            ended.append(acc[e])
+            acc[e] = 0.0
+    x = np.asarray(ended)
+    ema = x[0]
+    for v in x[1:]:
+        ema = C * v + (1 - C) * ema
+    return {
+        "": x.mean(),
+        "/std": x.std(),
+        "/min": x.min(),
+        "/max": x.max(),
+        "/count": len(x),
+        "/ema": ema,
+        "/window_mean": x[-W:].mean(),
+    }
+
+
+def env_sharding(devices: int) -> NamedSharding | None:
+    if devices == 1:
+        return None
+    mesh = jax.make_mesh(
+        (devices,), ("env",), axis_types=(AxisType.Auto,), devices=jax.devices()[:devices]
+    )
+    return NamedSharding(mesh, P("env"))
+
+
+@pytest.mark.parametrize(
+    "kind, saved, restored", [("flax", 1, 4), ("flax", 4, 1), ("orbax", 4, 1), ("orbax", 2, 4)]
+)
+def test_a_checkpoint_continues_exactly_on_another_number_of_devices(
+    kind, saved, restored, tmp_path
+):
+    xs, dones = data()
+    m = plain_spec()
+    state = run(m, m.init(E, env_sharding(saved)), xs[:SPLIT], dones[:SPLIT])
+    fresh = plain_spec()
+    target = fresh.init(E, env_sharding(restored))
+    if kind == "flax":
+        raw = flax.serialization.from_bytes(target, flax.serialization.to_bytes(state))
+        # flax restores numpy arrays, which have no `.at`: an eager update used to fail.
+        fresh.update(raw, xs[SPLIT], dones[SPLIT])
+        back = fresh.from_checkpoint(raw, target)
+    else:
+        with ocp.StandardCheckpointer() as ckpt:
+            ckpt.save(tmp_path / "ckpt", m.to_checkpoint(state))
+            ckpt.wait_until_finished()
+            restored_tree = ckpt.restore(tmp_path / "ckpt", fresh.checkpoint_target(E, saved))
+        back = fresh.from_checkpoint(restored_tree, target)
+    # JAX arrays, laid out like the target: each device folds its own envs.
+    for got, want in zip(jax.tree.leaves(back), jax.tree.leaves(target)):
+        assert isinstance(got, jax.Array)
+        assert got.sharding.is_equivalent_to(want.sharding, got.ndim)
+    back = fresh.update(back, xs[SPLIT], dones[SPLIT])  # eagerly, then jitted
+    resumed = run(fresh, back, xs[SPLIT + 1 :], dones[SPLIT + 1 :])
+    got = report(fresh, resumed)
+    for suffix, want in reference(np.asarray(xs), np.asarray(dones)).items():
+        assert got[f"Episode_Metrics/r{suffix}"] == pytest.approx(want, rel=1e-5), suffix
+    assert got["Counters/env_steps"] == E * STEPS
+    assert got["Counters/updates"] == STEPS - 1  # the eager update logs nothing
+
+
+def test_a_restore_into_another_layout_is_refused_naming_both(tmp_path):
+    xs, dones = data()
+    m = plain_spec()
+    four = run(m, m.init(E, env_sharding(4)), xs[:SPLIT], dones[:SPLIT])
+    one = run(m, m.init(E), xs[:SPLIT], dones[:SPLIT])
+    with ocp.StandardCheckpointer() as ckpt:
+        for name, state in (("four", four), ("one", one)):
+            ckpt.save(tmp_path / name, m.to_checkpoint(state))
+        ckpt.wait_until_finished()
+        # strict=False cuts the 4 shards to the target's 1, shard 0's statistics alone.
+        cut = ckpt.restore(tmp_path / "four", m.to_checkpoint(m.init(E)), strict=False)
+        padded = ckpt.restore(tmp_path / "one", m.to_checkpoint(m.init(2 * E)), strict=False)
+    with pytest.raises(
+        ValueError,
+        match=r"holds a state of 8 envs in 4 env shards, but its arrays came back as 8 envs "
+        r"in 1 env shard.*checkpoint_target\(8, shards=4\)",
+    ):
+        m.from_checkpoint(cut, m.init(E))
+    # Another number of envs, by either path: refused at restore, naming both.
+    flax_restored = flax.serialization.from_bytes(m.init(2 * E), flax.serialization.to_bytes(one))
+    for restored in (padded, flax_restored):
+        with pytest.raises(
+            ValueError, match=r"is of 8 envs in 1 env shard, but the target is of 16 envs in 1"
+        ):
+            m.from_checkpoint(restored, m.init(2 * E))

@@ -275,7 +275,11 @@ def test_a_trainer_reset_of_the_envs_continues_the_steps_and_says_so():
     half = STEPS // 2
     run(rewards[:half], dones[:half])
     run(rewards[half:], dones[half:])  # starts from wrapped.init again: a reset
-    with pytest.warns(RuntimeWarning, match=r"run 0: the envs were reset after step 96"):
+    with pytest.warns(
+        RuntimeWarning,
+        match=r"run 0: the reporting wrapper's env steps started again after its record at "
+        r"step 96",
+    ):
         logger.close()
     records = memory.records
     # Steps and the env-step counter go on; statistics are those of each stretch.
@@ -287,6 +291,24 @@ def test_a_trainer_reset_of_the_envs_continues_the_steps_and_says_so():
     for r, want in zip(records[2:], second):
         assert r.scalars["Episode_Metrics/ret/count"] == want["count"]
         assert r.scalars["Episode_Metrics/ret"] == pytest.approx(want["mean"], rel=1e-5)
+
+
+def test_a_second_wrapper_on_one_logger_is_refused_at_trace_time():
+    # Each Brax ppo.train builds its env, and so its wrapper, anew: a second training's
+    # records would have gone on from the first's last step (1,280 where Brax says 0).
+    metrics, memory = _spec(), jm.MemoryWriter()
+    rewards, dones = _episodes(9, NUM_ENVS, PERIOD_CALLS)
+    with jm.Logger(metrics, [memory]) as logger:
+        first = jm.wrap_step(_step, metrics, logger=logger, report_every=PERIOD_CALLS * NUM_ENVS)
+        jax.jit(_run_scan(first, rewards, dones, NUM_ENVS))(rewards, dones)
+        second = jm.wrap_step(_step, metrics, logger=logger, report_every=PERIOD_CALLS * NUM_ENVS)
+        with pytest.raises(
+            ValueError,
+            match=r"already takes the reports of another reporting wrapper.*Create a new "
+            r"Logger for each training",
+        ):
+            jax.jit(_run_scan(second, rewards, dones, NUM_ENVS))(rewards, dones)
+    assert [r.step for r in memory.records] == [PERIOD_CALLS * NUM_ENVS]
 
 
 def test_envs_reset_under_an_unnamed_pmap_still_merge_exactly():

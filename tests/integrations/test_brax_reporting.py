@@ -1,7 +1,9 @@
 """Brax's own `ppo.train` and `sac.train` with the reporting wrapper: every period's record
 reaches TensorBoard while training runs, over all envs of both devices Brax pmaps over, equal
 to a float64 unroll of the rewards and dones the training envs produced; the evaluator's
-episodes are not in it; closing the logger after training writes everything once."""
+episodes are not in it; closing the logger after training writes everything once. Brax's env
+resets between epochs lose nothing and keep Brax's step; a second training on one Logger is
+refused."""
 
 import functools
 
@@ -19,7 +21,7 @@ from tensorboard.backend.event_processing import event_accumulator
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb
 
-DEVICES, NUM_ENVS, TIMESTEPS, REPORT_EVERY = 2, 16, 2048, 512
+DEVICES, NUM_ENVS, TIMESTEPS, REPORT_EVERY, WINDOW = 2, 16, 2048, 512, 100
 
 
 class Recorder(Wrapper):
@@ -57,23 +59,35 @@ def _wrap(env, metrics, logger, seen, episode_length, action_repeat, randomizati
     return brax_training.AutoResetWrapper(Recorder(inner, seen))
 
 
-def _reference(seen: dict[int, list], period_calls: int) -> list[dict]:
+def _reference(seen: dict[int, list], period_calls: int, epoch_calls: int = 0) -> list[dict]:
     """Per period: count, mean and max of episode returns and mean length, in float64,
-    over the global env index (device d holds the d-th block of envs)."""
+    over the global env index (device d holds the d-th block of envs), and the mean of the
+    last `WINDOW` returns. Every `epoch_calls` steps (0: never) the trainer resets the envs:
+    the running episodes end unfinished."""
     rewards = np.concatenate([np.stack([r for r, _ in seen[d]]) for d in sorted(seen)], axis=1)
     dones = np.concatenate([np.stack([x for _, x in seen[d]]) for d in sorted(seen)], axis=1)
     ret = np.zeros(rewards.shape[1])
     length = np.zeros(rewards.shape[1])
     out, returns, lengths = [], [], []
+    window: list[float] = []
     for t in range(rewards.shape[0]):
+        if epoch_calls and t and t % epoch_calls == 0:
+            ret[:] = length[:] = 0.0
         ret += rewards[t].astype(np.float64)
         length += 1
         for e in np.flatnonzero(dones[t]):
             returns.append(ret[e])
             lengths.append(length[e])
+            window = (window + [ret[e]])[-WINDOW:]
             ret[e] = length[e] = 0.0
         if (t + 1) % period_calls == 0:
-            out.append({"returns": np.asarray(returns), "lengths": np.asarray(lengths)})
+            out.append(
+                {
+                    "returns": np.asarray(returns),
+                    "lengths": np.asarray(lengths),
+                    "window_mean": np.mean(window),
+                }
+            )
             returns, lengths = [], []
     return out
 
@@ -89,16 +103,16 @@ def _read(logdir) -> dict[str, list[tuple[int, float]]]:
 def _metrics() -> jm.Metrics:
     return jm.Metrics(
         terms={
-            "return": jmb.episode_return(stats=("mean", "max", "count")),
+            "return": jmb.episode_return(stats=("mean", "max", "count", jm.window(WINDOW))),
             "length": jmb.episode_length(stats=("mean", "count")),
         }
     )
 
 
-def _check_records(logdir, seen: dict[int, list]) -> None:
+def _check_records(logdir, seen: dict[int, list], epoch_calls: int = 0) -> None:
     """The records read back equal the float64 reference of the recorded training steps:
     one per period, in order, at env steps over both devices."""
-    expected = _reference(seen, REPORT_EVERY // NUM_ENVS)
+    expected = _reference(seen, REPORT_EVERY // NUM_ENVS, epoch_calls)
     tb = _read(logdir)
     steps = [REPORT_EVERY * (k + 1) for k in range(TIMESTEPS // REPORT_EVERY)]
     assert [s for s, _ in tb["Counters/env_steps"]] == steps
@@ -115,6 +129,9 @@ def _check_records(logdir, seen: dict[int, list]) -> None:
             want["returns"].max(), rel=1e-5
         )
         assert tb["Episode_Metrics/length"][k][1] == pytest.approx(want["lengths"].mean(), rel=1e-6)
+        assert tb["Episode_Metrics/return/window_mean"][k][1] == pytest.approx(
+            want["window_mean"], rel=1e-5
+        )
 
 
 @pytest.mark.slow
@@ -147,6 +164,50 @@ def test_brax_ppo_train_reports_training_episodes_over_both_devices(tmp_path, br
     assert [s for s, keys in progress if "eval/episode_reward" in keys] == [0, TIMESTEPS]
 
     _check_records(tmp_path, seen)
+
+
+@pytest.mark.slow
+def test_brax_env_resets_lose_nothing_and_a_second_training_is_refused(
+    tmp_path, brax_ppo_on_this_jax
+):
+    # Brax resets the envs after each of its 2 epochs of 1,024 env steps
+    # (num_resets_per_eval): records every 512 (the docs' advice, a divisor of the epoch)
+    # keep Brax's step and every training episode, and windows run on through the reset;
+    # closing warns of nothing (it used to, once per reset).
+    metrics = _metrics()
+    seen: dict[int, list] = {}
+    progress: list[int] = []
+    logger = jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
+    settings = dict(
+        environment=envs.get_environment("inverted_pendulum", backend="mjx"),
+        num_timesteps=TIMESTEPS,
+        episode_length=50,
+        num_envs=NUM_ENVS,
+        batch_size=16,
+        num_minibatches=2,
+        unroll_length=8,
+        num_updates_per_batch=1,
+        num_evals=2,
+        num_resets_per_eval=2,
+        num_eval_envs=4,
+        max_devices_per_host=DEVICES,
+        progress_fn=lambda step, m: progress.append(int(step)),
+        wrap_env_fn=functools.partial(_wrap, metrics=metrics, logger=logger, seen=seen),
+        seed=0,
+    )
+    with jmb.default_promotion():
+        brax_ppo.train(**settings)
+        assert progress == [0, TIMESTEPS]
+        # A second training on the same Logger would go on from step 2,048 while Brax
+        # counts from 0: refused when its env step is traced, naming the fix.
+        with pytest.raises(ValueError, match=r"Create a new Logger for each training"):
+            brax_ppo.train(
+                **settings
+                | {"wrap_env_fn": functools.partial(_wrap, metrics=metrics, logger=logger, seen={})}
+            )
+    logger.close()
+    assert {len(v) for v in seen.values()} == {TIMESTEPS // NUM_ENVS}
+    _check_records(tmp_path, seen, epoch_calls=TIMESTEPS // 2 // NUM_ENVS)
 
 
 @pytest.mark.slow

@@ -35,6 +35,8 @@ from ._merge import check_mergeable as check_mergeable
 from ._merge import combine as combine
 from ._merge import merge as merge
 from ._merge import pad_ema_history as pad_ema_history
+from ._merge import spread as spread
+from ._merge import with_ema_history as with_ema_history
 from ._segments import SegmentPlan as SegmentPlan
 from ._segments import segment_batch as segment_batch
 from ._selected import Selected as Selected

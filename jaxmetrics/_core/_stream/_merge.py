@@ -18,6 +18,7 @@ from ._state import (
     init,
     ordered,
     packed,
+    ring_words,
     rotated,
     take_rows,
     weight_dtype,
@@ -221,3 +222,47 @@ def pad_ema_history(s: StreamState, size: int) -> StreamState:
         return r._replace(data=jnp.pad(r.data, pad))
 
     return s._replace(ema_rings=tuple(widen(r) for r in s.ema_rings))
+
+
+def with_ema_history(plan: StreamPlan, s: StreamState, widths: tuple[int, ...]) -> StreamState:
+    """One worker's stream `s` with its EMA rings `widths` wide (per EMA group: 0, or the
+    group's `history`), as a state of another layout keeps them.
+
+    A ring is dropped where the layout keeps none: the EMA itself is whole without it.
+    Where `s` keeps none (an unsharded state) and the layout does, the EMA so far becomes
+    the ring's one value, stamped on the last arrival step, and the row counts one value
+    seen: merged with other workers, the later values then fold onto it in arrival order
+    (an EMA is seeded by its first value), as exactly as for a state made with history.
+    """
+    rings, ema_n = list(s.ema_rings), s.ema_n
+    for i, (g, r, width) in enumerate(zip(plan.ema_groups, s.ema_rings, widths)):
+        if r.size == width:
+            continue
+        own = plan.stream_rows(g)
+        zeros = jnp.zeros((len(own),), jnp.int32)
+        if width == 0:
+            rings[i] = Ring(r.data[:, :0], zeros, zeros)
+            continue
+        assert r.size == 0, "a ring is empty or as wide as its group's history"
+        rows = jnp.asarray(own, jnp.int32)
+        seen = s.ema_n[rows] > 0
+        stamp = take_rows(own, s.steps) - jnp.uint32(1)
+        data = jnp.zeros((len(own), width, ring_words(plan.dtype) + 1), jnp.uint32)
+        data = data.at[:, width - 1].set(packed((s.ema_off + s.ema)[rows], stamp))
+        rings[i] = Ring(data, zeros, seen.astype(jnp.int32))
+        ema_n = ema_n.at[rows].set(seen.astype(jnp.int32))
+    return s._replace(ema_rings=tuple(rings), ema_n=ema_n)
+
+
+def spread(plan: StreamPlan, s: StreamState, shards: int) -> StreamState:
+    """`s` as the first of `shards` per-shard streams (stacked on a leading axis), the
+    others empty at its arrival step: `combine` gives `s` back (a merge with an empty
+    stream is the identity), and values that arrive later, on any shard, come after all
+    of `s`'s."""
+    history = any(r.size > 0 for r in s.ema_rings)
+    empty = init(plan, ema_history=history)._replace(steps=s.steps)
+    return jax.tree.map(
+        lambda a, b: jnp.concatenate([a[None], jnp.broadcast_to(b, (shards - 1, *b.shape))]),
+        s,
+        empty,
+    )
