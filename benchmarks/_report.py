@@ -106,7 +106,7 @@ def environment(commit: str | None = None) -> dict[str, Any]:
     versions["jaxmetrics"] = jaxmetrics.__version__
     versions["python"] = platform.python_version()
     return {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "machine": {
             "hostname": platform.node(),
             "platform": platform.platform(),

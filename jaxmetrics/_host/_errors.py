@@ -153,11 +153,7 @@ class CallerReports:
         if errors:
             error = WriterError(errors)
             if raising:
-                note = "Also non-finite values: " + "; ".join(raising)
-                if sys.version_info >= (3, 11):
-                    error.add_note(note)
-                else:  # no add_note before Python 3.11: the note joins the message
-                    error.args = (f"{error}\n{note}",)
+                error.add_note("Also non-finite values: " + "; ".join(raising))
             raise error
         if raising:
             raise NonFiniteError("; ".join(raising))

@@ -59,7 +59,8 @@ def test_the_readme_test_command_is_what_ci_runs():
     ci = [line for line in (ROOT / ".ci" / "run").read_text().splitlines() if line.strip()]
     assert ci[-1] == tests
     assert tests == (
-        'pip install -e ".[test]" && ruff check . && ruff format --check . && python -m pytest -q'
+        'pip install -e ".[test]" && ruff check . && ruff format --check . && pyright && '
+        "mkdocs build --strict && python -m pytest -q && .ci/floors"
     )
     assert demo == 'pip install -e ".[train]" && python -m jaxmetrics.examples.ppo'
     assert "`python -m jaxmetrics.examples.brax_ppo`" in README.read_text()

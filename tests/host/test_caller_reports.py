@@ -1,5 +1,5 @@
 """`CallerReports.surface`: the writer errors, raised with the non-finite values that
-would have raised noted on them (on every supported Python: `add_note` is 3.11's)."""
+would have raised noted on them."""
 
 import pytest
 
@@ -13,5 +13,4 @@ def test_writer_error_notes_the_nonfinite_values_that_would_have_raised():
     reports.error(OSError("disk full"))
     with pytest.raises(WriterError, match="disk full") as caught:
         reports.surface()
-    text = "\n".join([str(caught.value), *getattr(caught.value, "__notes__", [])])
-    assert "Also non-finite values: step 3, run 0: term 'r'" in text
+    assert caught.value.__notes__ == ["Also non-finite values: step 3, run 0: term 'r'"]

@@ -199,8 +199,19 @@ def _collectives(jaxpr, path):
         name = eqn.primitive.name
         if name in ("all_gather", "psum", "all_to_all", "ppermute", "pmax", "pmin"):
             yield name, path
-        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+        for sub in _sub_jaxprs(eqn.params):
             yield from _collectives(sub, (*path, name))
+
+
+def _sub_jaxprs(params):
+    """The jaxprs in an equation's params (`jax.extend.core.jaxprs_in_params` from JAX
+    0.10 on; written out for the declared floor)."""
+    for value in params.values():
+        for v in value if isinstance(value, (tuple, list)) else (value,):
+            if isinstance(v, jax.extend.core.ClosedJaxpr):
+                yield v.jaxpr
+            elif isinstance(v, jax.extend.core.Jaxpr):
+                yield v
 
 
 def test_closing_after_training_writes_everything_once_also_when_retraced():
