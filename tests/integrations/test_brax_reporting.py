@@ -100,6 +100,26 @@ def _read(logdir) -> dict[str, list[tuple[int, float]]]:
     return {t: [(e.step, e.value) for e in acc.Scalars(t)] for t in acc.Tags()["scalars"]}
 
 
+def _ppo_settings(metrics: jm.Metrics, logger: jm.Logger, seen: dict) -> dict:
+    """Brax's ppo.train on inverted_pendulum, smoke-sized, over DEVICES devices, each
+    training env reporting to `logger` (its steps collected in `seen`)."""
+    return dict(
+        environment=envs.get_environment("inverted_pendulum", backend="mjx"),
+        num_timesteps=TIMESTEPS,
+        episode_length=50,
+        num_envs=NUM_ENVS,
+        batch_size=16,
+        num_minibatches=2,
+        unroll_length=8,
+        num_updates_per_batch=1,
+        num_evals=2,
+        num_eval_envs=4,
+        max_devices_per_host=DEVICES,
+        wrap_env_fn=functools.partial(_wrap, metrics=metrics, logger=logger, seen=seen),
+        seed=0,
+    )
+
+
 def _metrics() -> jm.Metrics:
     return jm.Metrics(
         terms={
@@ -142,20 +162,8 @@ def test_brax_ppo_train_reports_training_episodes_over_both_devices(tmp_path, br
     logger = jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
     with jmb.default_promotion():  # the suite runs strict (conftest)
         brax_ppo.train(
-            environment=envs.get_environment("inverted_pendulum", backend="mjx"),
-            num_timesteps=TIMESTEPS,
-            episode_length=50,
-            num_envs=NUM_ENVS,
-            batch_size=16,
-            num_minibatches=2,
-            unroll_length=8,
-            num_updates_per_batch=1,
-            num_evals=2,
-            num_eval_envs=4,
-            max_devices_per_host=DEVICES,
+            **_ppo_settings(metrics, logger, seen),
             progress_fn=lambda step, m: progress.append((int(step), set(m))),
-            wrap_env_fn=functools.partial(_wrap, metrics=metrics, logger=logger, seen=seen),
-            seed=0,
         )
     logger.close()
     # Brax trained on both devices and evaluated twice (its eval envs fold, never report).
@@ -178,22 +186,8 @@ def test_brax_env_resets_lose_nothing_and_a_second_training_is_refused(
     seen: dict[int, list] = {}
     progress: list[int] = []
     logger = jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
-    settings = dict(
-        environment=envs.get_environment("inverted_pendulum", backend="mjx"),
-        num_timesteps=TIMESTEPS,
-        episode_length=50,
-        num_envs=NUM_ENVS,
-        batch_size=16,
-        num_minibatches=2,
-        unroll_length=8,
-        num_updates_per_batch=1,
-        num_evals=2,
-        num_resets_per_eval=2,
-        num_eval_envs=4,
-        max_devices_per_host=DEVICES,
-        progress_fn=lambda step, m: progress.append(int(step)),
-        wrap_env_fn=functools.partial(_wrap, metrics=metrics, logger=logger, seen=seen),
-        seed=0,
+    settings = _ppo_settings(metrics, logger, seen) | dict(
+        num_resets_per_eval=2, progress_fn=lambda step, m: progress.append(int(step))
     )
     with jmb.default_promotion():
         brax_ppo.train(**settings)
