@@ -11,7 +11,7 @@ from . import _checkpoint, _count, _episode, _fresh, _inputs, _report, _rows, _s
 from ._count import Count
 from ._metrics_state import MetricsState
 from ._report import Report, ReportLayout
-from ._sharding import like, shard_count, state_mesh
+from ._sharding import like, shard_axes, shard_count, state_mesh
 from ._spec import Groups, Logged, MetricSpec, Term, reported
 from ._tags import TagInfo
 from ._validate import is_int
@@ -365,8 +365,16 @@ class Metrics:
             like(i, state.running.steps[0], f"the group indices of {where}")
             for i, where in _inputs.group_ids(self._rows, step_input, num_envs)
         ]
+        # One shard per device, where the trace knows the devices' axes: each device folds
+        # its shard on its own (`shard_map`), which lets a GPU's shard take the fused kernel
+        # (`_stream.add_with_counts(fused=True)`); XLA cannot partition that kernel, so a
+        # batch of shards it partitions takes XLA's kernels.
+        axes = shard_axes(state.shard_counts.hi, shards)  # type: ignore[union-attr]
+        per_device = shards == 1 or axes is not None
         segments_plan = self._rows.ep_segments
-        segmented = segments_plan is not None and segments_plan.serves(num_envs, shards == 1)
+        segmented = segments_plan is not None and segments_plan.serves(
+            num_envs // shards, per_device
+        )
         rows, segments = _inputs.by_group(self._rows, values, ok, bad, group_ids, segmented)
         # Materialized once: without the barrier XLA recomputes the episode values from
         # the old accumulators inside each reduction, which makes it copy them every step.
@@ -398,7 +406,13 @@ class Metrics:
             if g is not None:
                 assert segments_plan is not None  # `g`: the segment sources' batch
                 segments = (segments_plan, g)
-            return _stream.add_with_counts(plan, st, b, t, e, fused=shards == 1, segments=segments)
+            return _stream.add_with_counts(plan, st, b, t, e, fused=per_device, segments=segments)
+
+        def one_shard(*args):
+            # A vmap of size 1 would still batch the fold's scatters: the shard is folded
+            # as it is.
+            first = jax.tree.map(lambda a: a[0], args)
+            return jax.tree.map(lambda a: a[None], fold(*first))
 
         args = (
             state.finished,
@@ -408,9 +422,13 @@ class Metrics:
             None if segments is None else tuple(by_shard(a) for a in segments),
         )
         if shards == 1:
-            # One shard: the plain fold (a vmap of size 1 still batches its scatters).
-            first = jax.tree.map(lambda a: a[0], args)
-            finished, counts = jax.tree.map(lambda a: a[None], fold(*first))
+            finished, counts = one_shard(*args)
+        elif axes is not None:
+            # No collective: every input and output is split over `axes` on its shard axis.
+            # The varying-axes check is off: the fused kernel (a pallas_call) has no rule.
+            spec = jax.sharding.PartitionSpec(axes)
+            on_each = jax.shard_map(one_shard, in_specs=spec, out_specs=spec, check_vma=False)
+            finished, counts = on_each(*args)
         else:
             finished, counts = jax.vmap(fold)(*args)
         return state._replace(running=running, finished=finished, shard_counts=counts)

@@ -6,6 +6,7 @@ communication; shards meet only when a report is computed.
 """
 
 import contextlib
+import itertools
 import math
 from collections.abc import Iterator
 from typing import Any
@@ -36,6 +37,43 @@ def mesh_of(tree: Any) -> jax.sharding.Mesh | None:
             assert isinstance(sharding.mesh, jax.sharding.Mesh)  # a concrete array's
             return sharding.mesh
     return None
+
+
+def shard_axes(leaf: jax.Array, shards: int) -> tuple[str, ...] | None:
+    """In-graph: the mesh axes over which each device holds one of a state's `shards` env
+    shards (`leaf`: one of its per-shard leaves, `[S, ...]`), where the trace knows them;
+    None where it does not (one shard, or no mesh to read them from).
+
+    Under Explicit axes the leaf's type says (`update` traces under the state's mesh).
+    Under Auto axes the types carry no layout: the axes are read from the mesh the caller
+    set (`jax.set_mesh`, as `jmb.wrap(sharding=...)` does), as the one set of its axes whose
+    devices number `shards`; where two sets would do (a 2 x 2 mesh and 2 shards), none is
+    guessed. The state's shards are then folded per device (`jax.shard_map`), where each
+    device's shard can take the fused GPU kernel; without axes they are folded as one
+    batch of shards, which XLA keeps local to each device too, with its own kernels.
+    """
+    if shards < 2:
+        return None
+    mesh = jax.sharding.get_abstract_mesh()
+    if mesh.empty:
+        return None
+    spec = getattr(jax.typeof(leaf).sharding, "spec", None)
+    if spec and spec[0] is not None:
+        names = (spec[0],) if isinstance(spec[0], str) else tuple(spec[0])
+        candidates = [names]
+    else:
+        auto = [
+            n for n, t in zip(mesh.axis_names, mesh.axis_types) if t == jax.sharding.AxisType.Auto
+        ]
+        candidates = [
+            c
+            for k in range(1, len(auto) + 1)
+            for c in itertools.combinations(auto, k)
+            if math.prod(mesh.shape[n] for n in c) == shards
+        ]
+    if len(candidates) != 1 or math.prod(mesh.shape[n] for n in candidates[0]) != shards:
+        return None
+    return tuple(str(n) for n in candidates[0])
 
 
 def placed(tree: Any, sharding: Any) -> Any:

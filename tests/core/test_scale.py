@@ -5,7 +5,10 @@ Explicit axis types. Every statistic is compared with the float64 Python referen
 every step; the compiled step loop is checked for cross-device collectives.
 """
 
+import functools
+
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -38,6 +41,9 @@ LAYOUTS = {
     "2x4": ((2, 4), ("host", "device"), ("host", "device")),
     "2x4-device": ((2, 4), ("host", "device"), "device"),
     "2x2": ((2, 2), ("host", "device"), ("host", "device")),
+    # Auto axes of equal sizes: the trace cannot tell which splits the envs, and the
+    # shards fold as one batch (`_sharding.shard_axes`).
+    "2x2-device": ((2, 2), ("host", "device"), "device"),
 }
 
 
@@ -46,6 +52,11 @@ def mesh_of(layout, axis_type=AxisType.Auto):
     devices = jax.devices()[: int(np.prod(shape))]
     mesh = jax.make_mesh(shape, names, axis_types=(axis_type,) * len(shape), devices=devices)
     return mesh, env
+
+
+def place_of(mesh, env):
+    """The layouts of one step's values `[R, E]` and dones `[E]`, envs split over `env`."""
+    return NamedSharding(mesh, P(None, env)), NamedSharding(mesh, P(env))
 
 
 def place(mesh, env, xs, dones):
@@ -104,7 +115,7 @@ def rollouts(draw):
     return xs, dones.reshape(T, E), flushes
 
 
-@pytest.mark.parametrize("layout", ["8", "2x4", "2x4-device"])
+@pytest.mark.parametrize("layout", ["8", "2x2-device", "2x4-device"])
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(data=rollouts())
 def test_sharded_reports_match_the_float64_reference_after_every_step(layout, data):
@@ -166,7 +177,7 @@ def test_step_loop_has_no_cross_device_collectives(layout, axis_type):
         assert collectives(ops) == {}, f"{layout}: the step loop holds {collectives(ops)}"
         state = sharded(*args)
     shards = state.shard_counts.hi.shape[0]
-    assert shards == (8 if layout in ("8", "2x4") else 4)
+    assert shards == {"8": 8, "2x4": 8, "2x2-device": 2}.get(layout, 4)
     assert state.finished.count.hi.sharding.spec[0] == env
 
 
@@ -282,17 +293,78 @@ def test_float64_state_keeps_window_and_ema_history_to_the_last_bit():
         np.testing.assert_allclose(got["Episode_Metrics/x/ema"][t], want["ema"], rtol=1e-15)
 
 
-def test_fused_kernel_serves_one_shard_and_never_a_state_split_over_shards():
-    # The CUDA kernel (`_stream._kernel`) is a custom call XLA cannot partition: under a state
-    # split over devices it would gather every shard's batch each step. A one-shard state
-    # traces it (for CUDA; other platforms take the jnp branch), a sharded one never does.
-    mesh, env = mesh_of("4")
+def kernel_paths(jaxpr, path=()):
+    """The enclosing primitives of every call of the fused kernel (`pallas_call`) in a
+    jaxpr, recursively."""
+    for eqn in jaxpr.eqns:
+        name = eqn.primitive.name
+        if name == "pallas_call":
+            yield path
+        for value in eqn.params.values():
+            for v in value if isinstance(value, (tuple, list)) else (value,):
+                if isinstance(v, (jax.extend.core.ClosedJaxpr, jax.extend.core.Jaxpr)):
+                    yield from kernel_paths(getattr(v, "jaxpr", v), (*path, name))
 
+
+@pytest.mark.parametrize("axis_type", [AxisType.Auto, AxisType.Explicit])
+def test_each_shard_folded_by_the_kernel_follows_the_float64_reference(monkeypatch, axis_type):
+    # The fused kernel (Pallas' interpret mode: CI has no GPU) folding each device's shard
+    # inside the shard_map, 4 shards of 64 envs: every statistic after every step against
+    # the float64 reference, as one device's.
+    from jaxmetrics._core import _stream
+
+    fold = _stream.add_with_counts
+    monkeypatch.setattr(_stream, "add_with_counts", functools.partial(fold, interpret=True))
+    mesh, env = mesh_of("4", axis_type)
+    xs, dones = long_rollout(5, 6, 256, 0.3)
+    xs[2, 0, :3] = np.nan
+    flushes = np.arange(6) == 3
+    sharding = NamedSharding(mesh, P(env))
+    run = jax.jit(lambda a, b, c: rollout(METRICS, sharding, a, b, c))
+    args = (*place(mesh, env, xs, dones), jnp.asarray(flushes))
+    paths = list(kernel_paths(jax.make_jaxpr(run)(*args).jaxpr))
+    assert paths and all("shard_map" in p for p in paths), paths
+    reports = jax.device_get(run(*args))
+    assert_reports_follow_reference(METRICS, reports, xs, dones, flushes, REDUCTIONS)
+
+
+def with_mesh(mesh, fn, *args):
+    with jax.set_mesh(mesh):
+        return fn(*args)
+
+
+@pytest.mark.parametrize("axis_type", [AxisType.Auto, AxisType.Explicit])
+def test_fused_kernel_folds_each_shard_on_its_device_never_a_batch_xla_partitions(axis_type):
+    # The CUDA kernel (`_stream._kernel`) is a custom call XLA cannot partition: traced on a
+    # batch of shards that XLA splits, it would gather every shard's batch each step. Where
+    # the trace knows the devices' axes, each device folds its own shard inside a
+    # shard_map, and there the kernel serves it as it serves one device (for CUDA; other
+    # platforms take the jnp branch). Where it cannot tell them (Auto axes of equal
+    # sizes), a sharded state never traces it.
     def traced(num_envs, sharding=None):
         xs, dones = long_rollout(3, 1, num_envs, 0.3)
-        state = METRICS.init(num_envs, sharding=sharding)
-        return str(jax.make_jaxpr(METRICS.update)(state, xs[0], dones[0]))
+        x, done = xs[0], dones[0]
+        if sharding is not None:
+            mesh, env = sharding.mesh, sharding.spec[0]
+            x, done = (jax.device_put(a, s) for a, s in zip((x, done), place_of(mesh, env)))
+        step = lambda x, done: METRICS.update(METRICS.init(num_envs, sharding=sharding), x, done)  # noqa: E731
+        return list(kernel_paths(jax.make_jaxpr(step)(x, done).jaxpr))
 
-    assert "pallas_call" in traced(256)
-    assert "pallas_call" not in traced(256, NamedSharding(mesh, P(env)))
-    assert "pallas_call" not in traced(16)  # 16 envs: under the kernel's smallest block
+    one = traced(256)
+    assert one and not any("shard_map" in p for p in one), one
+    assert traced(16) == []  # 16 envs: under the kernel's smallest block
+    for layout in ("4", "2x4", "2x4-device"):
+        mesh, env = mesh_of(layout, axis_type)
+        sharding = NamedSharding(mesh, P(env))
+        # 1,024 envs: at least 128 a shard. The mesh is read from the state's type, or
+        # from the one set.
+        for paths in (traced(1024, sharding), with_mesh(mesh, traced, 1024, sharding)):
+            assert paths and all("shard_map" in p for p in paths), (layout, paths)
+    # A 2 x 2 mesh, envs split over "device" only: under Auto axes the types do not say
+    # which of the two axes of size 2 splits them.
+    mesh = jax.make_mesh((2, 2), ("host", "device"), axis_types=(axis_type,) * 2)
+    paths = traced(1024, NamedSharding(mesh, P("device")))
+    if axis_type == AxisType.Auto:
+        assert paths == []
+    else:
+        assert paths and all("shard_map" in p for p in paths), paths
