@@ -18,6 +18,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from typing import Any
 
 import jax
@@ -72,8 +73,9 @@ def sharded(
     repeats: int,
     device_counts: tuple[int, ...],
     processes: int = 0,
-) -> list[Table]:
-    """The weak-scaling and flush tables (and, with `processes`, the distributed one)."""
+) -> Iterator[Table]:
+    """The weak-scaling and flush tables (and, with `processes`, the distributed one),
+    each as soon as it is measured: a distributed run that fails keeps the others."""
     local = jax.local_devices()
     counts = tuple(d for d in device_counts if d <= len(local))
     t = Table(
@@ -113,10 +115,10 @@ def sharded(
         "bytes to host: the packed report a Logger.flush copies (O(metrics), whatever the envs); "
         "compute + copy: jitted compute, then device_get of every leaf, median."
     )
-    tables = [t, f]
+    yield t
+    yield f
     if processes:
-        tables.append(distributed(per_device, steps, repeats, processes))
-    return tables
+        yield distributed(per_device, steps, repeats, processes)
 
 
 def _flush_cost(spec: jm.Metrics, state: Any, repeats: int) -> list[Any]:
@@ -181,6 +183,9 @@ def _process_env(i: int) -> dict[str, str]:
     env["PYTHONPATH"] = os.pathsep.join(filter(None, (root, env.get("PYTHONPATH"))))
     if jax.default_backend() == "gpu":
         env["CUDA_VISIBLE_DEVICES"] = str(i)
+        # This process already holds most of each GPU's memory (JAX preallocates 75%): a
+        # worker that preallocated too failed NCCL's set-up on 80 GB cards.
+        env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     else:
         env["JAX_PLATFORMS"] = "cpu"
         env.pop("XLA_FLAGS", None)  # one CPU device per process
