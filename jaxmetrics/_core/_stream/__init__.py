@@ -16,7 +16,8 @@ number: the per-step cost grows with rows x envs elementwise, not with kernel la
 
 The package, one job a module: `_state` (the state, its plan, the rings), `_fold` (a
 batch into the state), `_update` (a batch's statistics into the per-row fields), `_kernel`
-(that fold as one GPU kernel; `_program`, one program of it), `_selected` (a batch's
+(that fold as one GPU kernel; `_layout`, its inputs and outputs by name; `_program`, one
+program of it), `_selected` (a batch's
 rows as source rows masked to a group), `_segments` (group rows of period statistics by
 segment reductions), `_merge` (states of
 disjoint workers into one) and `_compute` (the report statistics).

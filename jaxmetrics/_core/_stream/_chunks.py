@@ -14,6 +14,7 @@ per-row state (`combine`).
 """
 
 import functools
+from collections.abc import Callable
 from typing import NamedTuple
 
 import jax
@@ -130,7 +131,11 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
     chunks of hundreds of rows took longer than the two reductions (docs/benchmarks.md)."""
     by_reductions = floats.shape[0] >= COMBINED_BY_REDUCTIONS
 
-    def over_chunks(op, reduce, a):
+    def over_chunks(
+        op: Callable[[jax.Array, jax.Array], jax.Array],
+        reduce: Callable[..., jax.Array],
+        a: jax.Array,
+    ) -> jax.Array:
         if by_reductions:
             return reduce(a, axis=1)
         # Pairwise: each thread's chain over the chunks is log2(n) ops deep, not n.
@@ -168,7 +173,12 @@ def blocking(batch: int) -> tuple[int, int]:
     return block, -(-batch // block)
 
 
-def masked_in_around(mask_at, batch: int, lo, hi) -> tuple[jax.Array, jax.Array]:
+def masked_in_around(
+    mask_at: Callable[[int, int, jax.Array | None], jax.Array],
+    batch: int,
+    lo: jax.Array | int,
+    hi: jax.Array,
+) -> tuple[jax.Array, jax.Array]:
     """The masked-in entries of a row of `batch` entries (`Chunking.counted_here`)
     before entry `lo` and from entry `hi` on (`[1, 1]` int32 each), read in `blocking`'s
     blocks by `mask_at(start, n, fresh)` (the row's mask at `n` entries from `start`, those

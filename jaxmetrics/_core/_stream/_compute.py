@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 
 from .. import _count, _sketch, _spec, _statistics
 from .._count import Count
@@ -16,7 +17,9 @@ from ._state import (
 )
 
 
-def _percentiles(sorted_vals: jax.Array, filled: jax.Array, ps: tuple[float, ...], dt):
+def _percentiles(
+    sorted_vals: jax.Array, filled: jax.Array, ps: tuple[float, ...], dt: DTypeLike
+) -> list[jax.Array]:
     # numpy's "linear" method: position p/100 * (n-1) between order statistics.
     nm1 = jnp.maximum(filled - 1, 0).astype(dt)
     out = []
@@ -132,7 +135,7 @@ def _window_columns(plan: StreamPlan, g: WindowGroup, w: Ring, steps: jax.Array)
     return columns
 
 
-def _overflows(plan: StreamPlan, s: StreamState, columns) -> jax.Array:
+def _overflows(plan: StreamPlan, s: StreamState, columns: list[Column]) -> jax.Array:
     """`[R]` uint32: per row, its reported statistics among `columns` that overflowed the
     dtype, 0 for the rows of metrics that propagate non-finite values. A statistic the
     metric does not report (a row always has a std and a sum) is no loss."""
@@ -145,6 +148,7 @@ def _overflows(plan: StreamPlan, s: StreamState, columns) -> jax.Array:
         kind = _statistics.get(name).overflow
         if kind is None:
             continue
+        assert not isinstance(values, Count)  # statistics that overflow are floats
         flags = jnp.isinf(values) if kind == "inf" else _gathered(rows, has) & ~jnp.isfinite(values)
         flags = flags & np.array([name in reported[i] for i in rows])
         if rows != every:

@@ -12,9 +12,13 @@ in the one multi-output kernel that updates the other per-row fields (sibling fu
 must share an operand) instead of in a kernel of its own.
 """
 
+from collections.abc import Iterable
+from typing import TypeVar
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike, DTypeLike
 
 from .. import _count, _sketch
 from .._count import Count
@@ -28,6 +32,14 @@ from ._state import Ring, StreamPlan, StreamState, packed, take_rows, weight_dty
 # What a fold gives (`_fold_rows`): the batch's statistics, each EMA ring's and each
 # window ring's data, each histogram's counts and `hist_steps`, and the fields and counts
 # where the fused kernel updated them itself (else None).
+A = TypeVar("A")
+B = TypeVar("B")
+BatchStats = tuple[
+    jax.Array, jax.Array, jax.Array, jax.Array, jax.Array, jax.Array, jax.Array,
+    jax.Array | None, jax.Array | None,
+]  # fmt: skip
+"""A batch's statistics in `_update.Batch`'s order (its EMA sum and counted sums None
+where there are none)."""
 Folded = tuple[
     _update.Batch,
     tuple[jax.Array, ...],
@@ -136,13 +148,16 @@ def add_with_counts(
     return new, counts
 
 
-def _updated(plan: StreamPlan, s: StreamState, stats, shift, counts: Count):
+def _updated(
+    plan: StreamPlan, s: StreamState, stats: _update.Batch, shift: jax.Array, counts: Count
+) -> tuple[_update.Fields, Count]:
     """The state's per-row fields with the batch's statistics (`_update.Batch`) folded in
     (`_update.update`), and the counted rows' `counts` plus the batch's counted sums."""
     wt = weight_dtype(plan.dtype)
     fields = _update.update(_update.Fields.of(s), stats, shift, update_rows(plan), wt)
     packs = counts.lo.shape[0] // len(plan.rows) if plan.rows else 0
     k = jnp.tile(stats.count, packs)
+    assert stats.counted_sums is not None  # XLA's fold sums the counted rows
     return fields, _count.add(counts, jnp.where(k < 0, 0, stats.counted_sums))
 
 
@@ -174,7 +189,15 @@ def _fold_rows(
     return (*_fold_dense(plan, s, batch, shift, counted), None)
 
 
-def _fold_dense(plan: StreamPlan, s: StreamState, batch: Selected, shift, counted):
+def _fold_dense(
+    plan: StreamPlan, s: StreamState, batch: Selected, shift: jax.Array, counted: jax.Array
+) -> tuple[
+    _update.Batch,
+    tuple[jax.Array, ...],
+    tuple[jax.Array, ...],
+    tuple[Count, ...],
+    tuple[jax.Array, ...],
+]:
     """`_fold` of the rows `batch` selects, as arrays, with `counted` padded to
     `counts_width` rows."""
     width = counts_width(plan, counted.shape[0])
@@ -222,17 +245,7 @@ def _batch(
     wt: jnp.dtype,
     ema_in: jax.Array | None,
     counted: jax.Array,
-) -> tuple[
-    jax.Array,
-    jax.Array,
-    jax.Array,
-    jax.Array,
-    jax.Array,
-    jax.Array,
-    jax.Array,
-    jax.Array | None,
-    jax.Array,
-]:
+) -> BatchStats:
     """Per row of a batch `values[R, B]` where `mask`: the count, sum, min, max, and the
     mean and sum of squared deviations of `values - shift`; the sum of `nonfinite`; the
     sum of each row of `ema_in` (`_ema_operands`; None without EMA rows); the sum of each
@@ -256,7 +269,15 @@ def _batch(
     )
 
 
-def batch_two_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None):
+def batch_two_pass(
+    values: jax.Array,
+    mask: jax.Array,
+    nonfinite: jax.Array,
+    shift: jax.Array,
+    wt: DTypeLike,
+    ema_in: jax.Array | None = None,
+    counted: jax.Array | None = None,
+) -> BatchStats:
     """`_batch` in two passes: count, sum, min, max, then moments around a pivot (`shift`
     where it is non-zero, else the batch's mean)."""
     dt = values.dtype
@@ -290,7 +311,15 @@ PART = 256
 """Entries per part of a longer row (`batch_one_pass`)."""
 
 
-def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None):
+def batch_one_pass(
+    values: jax.Array,
+    mask: jax.Array,
+    nonfinite: jax.Array,
+    shift: jax.Array,
+    wt: DTypeLike,
+    ema_in: jax.Array | None = None,
+    counted: jax.Array | None = None,
+) -> BatchStats:
     """`_batch` as one variadic reduction (Chan's pairwise moments in its combiner). A row
     past `ONE_STAGE` entries is reduced in two: its parts of `PART` entries, then their
     partial statistics. XLA reduces a row of 16,384 entries in one program, which leaves
@@ -331,7 +360,7 @@ def batch_one_pass(values, mask, nonfinite, shift, wt, ema_in=None, counted=None
     inits += (np.int32(0),) * packs
     e = 8 if has_ema else 7
 
-    def combine(x, y):
+    def combine(x: tuple[jax.Array, ...], y: tuple[jax.Array, ...]) -> tuple[jax.Array, ...]:
         ka, sa, lo_a, hi_a, ma, qa, na = x[:7]
         kb, sb, lo_b, hi_b, mb, qb, nb = y[:7]
         fa, fb = ka.astype(wt), kb.astype(wt)
@@ -370,7 +399,15 @@ def _nothing_counted(values: jax.Array) -> jax.Array:
     return jnp.zeros((0, values.shape[1]), jnp.int32)
 
 
-def _ema_operands(plan: StreamPlan, values, mask, after, k, off, seeding):
+def _ema_operands(
+    plan: StreamPlan,
+    values: jax.Array,
+    mask: jax.Array,
+    after: jax.Array,
+    k: jax.Array,
+    off: jax.Array,
+    seeding: jax.Array,
+) -> jax.Array:
     """The EMA's input to the batch's reduction, every row ([R, B]; zero rows where a
     row has no EMA): the deviations `x - off` weighed by their EMA weights. `after` and
     `k` are every row's arrival ranks and counts (`arrivals_after`); `off` and `seeding`
@@ -387,7 +424,9 @@ def _ema_operands(plan: StreamPlan, values, mask, after, k, off, seeding):
     return ema_weights(c, after, seeding[:, None], k[:, None], dt) * dev
 
 
-def ema_weights(c, after, seeding, count, dt):
+def ema_weights(
+    c: jax.Array, after: jax.Array, seeding: ArrayLike, count: ArrayLike, dt: DTypeLike
+) -> jax.Array:
     """The closed-form EMA weights of values with `after` later arrivals: c(1-c)^after,
     except the first of `count` values where `seeding`, which seeds the EMA and weighs
     (1-c)^(count-1)."""
@@ -395,7 +434,9 @@ def ema_weights(c, after, seeding, count, dt):
     return jnp.where(seeding & (after == count - 1), decay, c * decay)
 
 
-def _ring_data(w: Ring, step: jax.Array, values, mask, after, k) -> jax.Array:
+def _ring_data(
+    w: Ring, step: jax.Array, values: jax.Array, mask: jax.Array, after: jax.Array, k: jax.Array
+) -> jax.Array:
     """`w.data` with the batch's arrivals added; `step` is each ring row's arrival step."""
     # Only the last `size` arrivals survive (those with fewer than `size` after them);
     # they go to consecutive ring slots in order: one scatter writes each value with
@@ -445,6 +486,7 @@ def _fold(
     ema_in = None
     if plan.ema_rows:
         off, seeding = _update.ema_offset(s.ema_w, s.ema_off, shift)
+        assert after is not None and k is not None  # every row is ranked (`_ranked`)
         ema_in = _ema_operands(plan, values, mask, after, k, off, seeding)
 
     def ring(w: Ring, rows: tuple[int, ...]) -> jax.Array:
@@ -470,7 +512,9 @@ def _fold(
     return stats, ema_data, window_data, *_hists_add(plan, s, values, mask)
 
 
-def _hists_add(plan: StreamPlan, s: StreamState, values, mask):
+def _hists_add(
+    plan: StreamPlan, s: StreamState, values: jax.Array, mask: jax.Array
+) -> tuple[tuple[Count, ...], tuple[jax.Array, ...]]:
     """Each histogram's counts with the batch added, and its `hist_steps`."""
     return _pairs(
         _hists.add(g, h, z, take_rows(g.rows, values), take_rows(g.rows, mask), plan.dtype)
@@ -567,6 +611,6 @@ def _fold_fused(
     return jax.lax.platform_dependent(*args, cuda=kernel, default=reference)
 
 
-def _pairs(items) -> tuple[tuple, tuple]:
+def _pairs(items: Iterable[tuple[A, B]]) -> tuple[tuple[A, ...], tuple[B, ...]]:
     pairs = tuple(items)
     return tuple(a for a, _ in pairs), tuple(b for _, b in pairs)

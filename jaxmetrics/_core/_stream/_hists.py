@@ -11,16 +11,19 @@ zeros: a scatter into a fresh zero array costs one more kernel per step, the fil
 """
 
 import functools
-from typing import NamedTuple
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
+from jax.typing import DTypeLike
 
 from .. import _count
 from .._count import Count
+from ._layout import HistOf
 from ._selected import Selected
 from ._state import HistGroup
 
@@ -38,7 +41,7 @@ def slot_counts_compare(slot: jax.Array, into: jax.Array) -> jax.Array:
     return into + jnp.sum(slot[:, None, :] == bins, axis=2, dtype=jnp.int32)
 
 
-def slot(bins: int, values, mask, lo, hi) -> jax.Array:
+def slot(bins: int, values: jax.Array, mask: jax.Array, lo: jax.Array, hi: jax.Array) -> jax.Array:
     """Each value's histogram slot (0: under `lo`, `bins + 1`: over `hi`), or `bins + 2`
     (no slot) where not `mask` or NaN."""
     t = jnp.floor((values - lo) / (hi - lo) * bins)
@@ -47,7 +50,9 @@ def slot(bins: int, values, mask, lo, hi) -> jax.Array:
     return jnp.where(mask & ~jnp.isnan(values), slots, bins + 2)
 
 
-def counted(g: HistGroup, zero: jax.Array, values, mask, dt) -> jax.Array:
+def counted(
+    g: HistGroup, zero: jax.Array, values: jax.Array, mask: jax.Array, dt: DTypeLike
+) -> jax.Array:
     """The step's counts of histogram `g`'s rows (`values`, `mask`: `[R_h, B]`) scattered
     into `zero` (`hist_steps`)."""
     lo = jnp.asarray(g.lo, dt)[:, None]
@@ -64,7 +69,7 @@ def counted(g: HistGroup, zero: jax.Array, values, mask, dt) -> jax.Array:
     )
 
 
-def counted_selected(g: HistGroup, zero: jax.Array, batch: Selected, dt) -> jax.Array:
+def counted_selected(g: HistGroup, zero: jax.Array, batch: Selected, dt: DTypeLike) -> jax.Array:
     """`counted` of the histogram's rows that `batch` selects (`g.rows`), on a CUDA GPU:
     with group rows, each entry of a source row scattered once per grouping into the row
     of its group (`Selected.row_of`), where the rows as arrays would be a masked copy of
@@ -79,7 +84,9 @@ def counted_selected(g: HistGroup, zero: jax.Array, batch: Selected, dt) -> jax.
     return zero.at[row, slot(g.bins, values, row < sel.rows, lo, hi)].add(1, mode="drop")
 
 
-def add(g: HistGroup, h: Count, zero: jax.Array, values, mask, dt):
+def add(
+    g: HistGroup, h: Count, zero: jax.Array, values: jax.Array, mask: jax.Array, dt: DTypeLike
+) -> tuple[Count, jax.Array]:
     """`h` with the batch counted in, and `zero` (`hist_steps`) as it was."""
     inc = counted(g, zero, values, mask, dt)
     # The zeros read through `inc` (see `_fold`'s module docstring).
@@ -96,13 +103,12 @@ class HistIn(NamedTuple):
     hi: jax.Array
 
 
-def add_in_kernel(row, hist_in, hist_out) -> None:
+def add_in_kernel(row: jax.Array, ins: Sequence[HistOf[Any]], outs: Sequence[HistOf[Any]]) -> None:
     """Inside the fused kernel: row `row` of each histogram (where it has one), its step
-    counts added to its words with the carry (`_count.add`), and zeroed (`HistIn`; inputs
-    and outputs in that order, three per histogram). A histogram's rows are some of the
+    counts added to its words with the carry (`_count.add`), and zeroed (`HistIn`; `ins`
+    and `outs` the histograms' refs, `_layout.HistOf`). A histogram's rows are some of the
     batch's, so the batch's programs cover them, each a row."""
-    for i in range(0, len(hist_in), 3):
-        step, lo, hi = hist_in[i : i + 3]
+    for (step, lo, hi), (out_step, out_lo, out_hi) in zip(ins, outs):
         rows, slots = step.shape
         c = jax.lax.broadcasted_iota(jnp.int32, (1, pl.next_power_of_2(slots)), 1)
         there = (c < slots) & (row < rows)
@@ -110,12 +116,19 @@ def add_in_kernel(row, hist_in, hist_out) -> None:
         # back).
         at = (jnp.broadcast_to(jnp.minimum(row, rows - 1), c.shape), jnp.where(there, c, slots))
         inc = plt.load(step.at[at], mask=there, other=0).astype(jnp.uint32)
-        out_step, out_lo, out_hi = hist_out[i : i + 3]
         _add_with_carry(inc, at, there, lo, hi, out_lo, out_hi)
         plt.store(out_step.at[at], jnp.zeros_like(inc, step.dtype), mask=there)
 
 
-def _add_with_carry(inc, at, there, lo, hi, lo_out, hi_out) -> None:
+def _add_with_carry(
+    inc: jax.Array,
+    at: tuple[jax.Array, jax.Array],
+    there: jax.Array,
+    lo: Any,
+    hi: Any,
+    lo_out: Any,
+    hi_out: Any,
+) -> None:
     """Inside the fused kernel: `inc` (uint32) added to a histogram's low words at `at`
     (where `there`) with the carry into its high words (`_count.add`), read from `lo`,
     `hi` and written to `lo_out`, `hi_out`."""
@@ -142,18 +155,25 @@ class HistRows(NamedTuple):
         return cls(g.bins, row, lo, hi)
 
 
-def count_in_kernel(bins: int, spec, blocks, values_of, total, words) -> None:
+def count_in_kernel(
+    bins: int,
+    spec: tuple[jax.Array, ...],
+    blocks: Callable[..., Any],
+    values_of: Callable[[], Any],
+    total: jax.Array,
+    words: tuple[Any, Any, Any, Any],
+) -> None:
     """Inside the fused kernel, reading a row from its list: the row's entries counted into
     its row of a histogram of `bins` bins, if it has one. `spec` is the row's table columns
     as three `[1, 1]` slices (Triton's arrays are powers of two): its histogram row (-1:
     none) and the float32 bits of `lo` and `hi`. `blocks` and `values_of` read the row
-    (`_program`'s `fold_blocks`), `total` is its masked-in entries, `words` the histogram's
+    (`_program`'s `_fold_blocks`), `total` is its masked-in entries, `words` the histogram's
     low and high words in, then out."""
     row = jnp.sum(spec[0])
     lo, hi = (jax.lax.bitcast_convert_type(c, jnp.float32) for c in spec[1:])
 
-    def count():
-        def body(m, bad, *rest):
+    def count() -> None:
+        def body(m: jax.Array, bad: jax.Array, *rest: Any) -> jax.Array:
             *_, x, acc = rest
             return acc + counted_in_kernel(bins, x, m, lo, hi)
 
@@ -188,30 +208,35 @@ class Pairs(NamedTuple):
 
 
 def count_pair_in_kernel(
-    j, sizes: tuple[int, ...], bins: tuple[int, ...], table_ref, entries_of, hist_in, hist_out
+    j: jax.Array,
+    sizes: tuple[int, ...],
+    bins: tuple[int, ...],
+    table_ref: Any,
+    entries_of: Callable[[jax.Array], tuple[jax.Array, Callable[[Any], Any], int]],
+    ins: Sequence[HistOf[Any]],
+    outs: Sequence[HistOf[Any]],
 ) -> None:
     """Inside the fused kernel, the program of pair `j` (`Pairs`: `table_ref` its table,
     `sizes` its pairs per histogram; `bins` each histogram's): the entries of the pair's
     batch row, read from its list, counted into its row of the histogram.
     `entries_of(src)` gives the length of source row `src`'s list, what reads a block of
     it at an entry (`[1, n]` mask and values, in entry order) and the block's `n`;
-    `hist_in` and `hist_out` are the histograms' inputs and outputs (`HistIn`, three
-    each). Apart from the rows' programs, the count runs beside their folds, where in a
-    row's program it would run after it."""
+    `ins` and `outs` are the histograms' refs (`_layout.HistOf`). Apart from the rows'
+    programs, the count runs beside their folds, where in a row's program it would run
+    after it."""
     src, row, lo, hi = (table_ref[pl.ds(j, 1), pl.ds(c, 1)] for c in range(4))
     src, row = jnp.sum(src), jnp.sum(row)
     lo, hi = (jax.lax.bitcast_convert_type(c, jnp.float32) for c in (lo, hi))
     length, block, n = entries_of(src)
 
-    def count(i: int, nbins: int):
-        def step(k, acc):
+    def count(i: int, nbins: int) -> None:
+        def step(k: jax.Array, acc: jax.Array) -> jax.Array:
             mask, values = block(k * n)
             return acc + counted_in_kernel(nbins, values, mask, lo, hi)
 
         zero = jnp.zeros((pl.next_power_of_2(nbins + 2), 1), jnp.int32)
         inc = jax.lax.fori_loop(0, (length + n - 1) // n, step, zero)
-        words = (*hist_in[3 * i + 1 : 3 * i + 3], *hist_out[3 * i + 1 : 3 * i + 3])
-        add_counted_in_kernel(row, inc, *words)
+        add_counted_in_kernel(row, inc, ins[i].lo, ins[i].hi, outs[i].lo, outs[i].hi)
 
     start = 0
     for i, (size, nbins) in enumerate(zip(sizes, bins)):
@@ -221,7 +246,9 @@ def count_pair_in_kernel(
         start += size
 
 
-def counted_in_kernel(bins: int, values, mask, lo, hi) -> jax.Array:
+def counted_in_kernel(
+    bins: int, values: jax.Array, mask: jax.Array, lo: jax.Array, hi: jax.Array
+) -> jax.Array:
     """Inside the fused kernel: a block's counts per slot of `values` where `mask` (`[1, n]`;
     `lo`, `hi`: `[1, 1]`), `[P, 1]` int32 with P a power of two past the `bins + 2` slots,
     each entry's slot compared with every slot."""
@@ -230,7 +257,9 @@ def counted_in_kernel(bins: int, values, mask, lo, hi) -> jax.Array:
     return jnp.sum((s == c).astype(jnp.int32), axis=1, keepdims=True)
 
 
-def add_counted_in_kernel(row, inc, lo, hi, lo_out, hi_out) -> None:
+def add_counted_in_kernel(
+    row: jax.Array, inc: jax.Array, lo: Any, hi: Any, lo_out: Any, hi_out: Any
+) -> None:
     """Inside the fused kernel: `inc` (`counted_in_kernel`) added to row `row` (a scalar) of
     a histogram's words with the carry (`_count.add`), read from `lo`, `hi` and written to
     `lo_out`, `hi_out`."""

@@ -28,7 +28,10 @@ and their partial statistics combined after it). Where each row is one program (
 batch's statistics into its row's fields of the state (`_update`), in place, where XLA's
 update of those `[R]` fields is one more kernel per step.
 
-This module lays out the kernel's inputs and calls it (`fold`); what one program does is
+This module lays out the kernel's inputs and calls it (`fold`): it decides how the batch
+is folded (`_Plan`), builds the kernel's operands by name (`_operands`: `_layout`'s
+`KernelIn` and `KernelOut`, from which the flat lists and the input-output aliases of
+`pl.pallas_call` follow) and reads its outputs back (`_stats`); what one program does is
 `_program`'s. The kernel runs on CUDA only; elsewhere `_stream` computes the same with jnp,
 and tests check that both agree (the kernel in Pallas' interpret mode).
 """
@@ -41,11 +44,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
+from jax.typing import DTypeLike
 
+from .._count import Count
 from . import _reached, _update
 from ._chunks import chunk_counts, chunking, combine, counted_input, reads_counts
 from ._hists import HistIn, HistRows, Pairs
-from ._program import program
+from ._layout import HistOf, KernelIn, KernelOut, Layout, Operand, RingOf, aliases, operands
+from ._program import Static, program
 from ._selected import Selected
 from ._update import Batch
 
@@ -53,7 +59,7 @@ MIN_BATCH = 32
 MAX_BATCH = 65536
 
 
-def fits(batch: int, dtype) -> bool:
+def fits(batch: int, dtype: DTypeLike) -> bool:
     """Whether the kernel serves a float32 batch of `batch` entries per row: any size
     from `MIN_BATCH` to `MAX_BATCH`, the largest measured faster than XLA's kernels
     (docs/benchmarks.md)."""
@@ -100,7 +106,7 @@ def fold(
     hists: tuple[HistIn, ...] = (),
     hist_rows: tuple[HistRows, ...] = (),
     update: _update.InKernel | None = None,
-) -> tuple[Batch, tuple[jax.Array, ...], tuple[HistIn, ...], tuple | None]:
+) -> tuple[Batch, tuple[jax.Array, ...], tuple[HistIn, ...], tuple[_update.Fields, Count] | None]:
     """Folds the rows `[R, B]` that `batch` selects (`Selected`; float32 values, bool
     mask, integer non-finite flags): their statistics (`Batch`; `shift[R]` float32, and the
     sums of `counted[C, B]` (integers, C up to `packs` times R) as `packs` counted rows per
@@ -124,171 +130,246 @@ def fold(
     reached entries (`_reached`; as `_reached.listed` says for the batch), else from the
     batch.
     """
-    rows, width = batch.rows, batch.batch
-    gather = _reached.block(width) if listed else 0
-    assert not hist_rows or (gather and len(hist_rows) == len(hists))
-    ranked = ema is not None or bool(rings)
-    chunk, n_chunks, _ = (
-        (gather, 1, False) if gather else chunking(rows, width, batch.grouped, ranked=ranked)
+    assert not hist_rows or (listed and len(hist_rows) == len(hists))
+    plan = _Plan.of(
+        batch, counted, packs, ema is not None or bool(rings), listed, hist_rows, update
     )
-    # The counted rows are summed over every entry, not the reached ones: read with the
-    # batch, or where the rows are read from the lists, by the listing's kernel.
-    counted_here = bool(packs and counted.shape[0]) and not listed
-    coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
-    table = [coeff.view(np.int32)[:, None], batch.table()]
-    for r in rings:
-        table += [np.stack([np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)], 1)]
-    # Ungrouped rows read from the lists have hundreds of entries a step: their histograms
-    # are counted by programs of their own, one per (row, histogram row) pair, beside the
-    # rows' folds, where in the rows' programs the count ran after the fold
-    # (docs/benchmarks.md, "Scaling"). Group rows have a few entries each.
-    pairs = Pairs.of(hist_rows, batch.src) if hist_rows and not batch.grouped else None
-    programs = sum(pairs.sizes) if pairs else 0  # the pairs'
-    for h in () if pairs else hist_rows:
-        bits = [np.asarray(a, np.float32).view(np.int32) for a in (h.lo, h.hi)]
-        table += [np.stack([np.asarray(h.row, np.int32), *bits], 1)]
-    table = np.concatenate(table, axis=1).astype(np.int32)
-    table = np.pad(table, ((0, 0), (0, pl.next_power_of_2(table.shape[1]) - table.shape[1])))
-
-    def whole(a):
-        return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
-
-    def col(a):
-        return a.reshape(rows, 1)
-
-    def row_of(i):
-        # The pairs' programs, past the rows', take the last row's blocks and write none.
-        return jnp.minimum(i, rows - 1) if pairs else i
-
-    def cols(n):
-        return pl.BlockSpec((1, n), lambda i, *c: (row_of(i), 0))
-
-    def per_program(n):
-        return pl.BlockSpec((1, n), lambda i, *c: (i, *c) if c else (row_of(i), 0))
-
-    one = cols(1)
-    args = [(a, whole(a)) for a in (batch.ok, batch.values, batch.bad)]
-    args += [
-        (col(shift), one),
-        (col(steps.astype(jnp.uint32)), one),
-        (jnp.asarray(table), cols(table.shape[1])),
-    ]
-    if batch.grouped:
-        args.append((batch.ids, whole(batch.ids)))
-    chunk_sums = None  # the counted rows' chunk sums, where `gather`
-    if gather:
-        lists, chunk_sums = _reached.reached(batch, counted if packs else counted[:0], interpret)
-        args += [(a, whole(a)) for a in lists if a is not None]
-        if pairs:
-            args.append((jnp.asarray(pairs.table), whole(pairs.table)))
-    elif reads_counts(rows, width, batch.grouped, ranked):
-        args.append((chunk_counts(batch, chunk), cols(pl.next_power_of_2(n_chunks))))
-    if counted_here:
-        padded = counted_input(counted, batch.values.shape[0])
-        args.append((padded, whole(padded)))
-    if ema is not None:
-        args += [(col(a), one) for a in (ema.ema_w, ema.ema_off)]
-    own = update is not None and n_chunks == 1
-    first_ring = len(args)
-    for r in rings:
-        # With `update`, each row's program reads and writes its own `pos` (windows'
-        # have every row).
-        args += [(r.data, whole(r.data)), (col(r.pos), one) if own else (r.pos, whole(r.pos))]
-    first_hist = len(args)
-    words = [a for h in hists for a in h]
-    args += [(a, whole(a)) for a in words]
-    listed_sums = chunk_sums.shape[0] if own and packs and chunk_sums is not None else 0
-    first_update = len(args)
-    if own:
-        assert update is not None  # `own` needs it
-        assert len(rings) == len(update.rows.windows)
-        ins = _update.kernel_inputs(update)
-        args += [(col(a), one) if a.ndim == 1 else (a, whole(a)) for a in ins]
-        if listed_sums:
-            assert chunk_sums is not None
-            args.append((chunk_sums, whole(chunk_sums)))
-    n_int = pl.next_power_of_2(2 + packs)
-    outs = [
-        (jax.ShapeDtypeStruct((rows, 8 * n_chunks), jnp.float32), per_program(8)),
-        (jax.ShapeDtypeStruct((rows, n_int * n_chunks), jnp.int32), per_program(n_int)),
-    ]
-    outs += [(jax.ShapeDtypeStruct(r.data.shape, r.data.dtype), whole(r.data)) for r in rings]
-    outs += [(jax.ShapeDtypeStruct(a.shape, a.dtype), whole(a)) for a in words]
-    if own:
-        assert update is not None
-        outs += [
-            (jax.ShapeDtypeStruct((rows, 1), o.dtype), one) if len(o.shape) == 1 else (o, whole(o))
-            for o in _update.kernel_outputs(update)
-        ]
-    kernel = functools.partial(
-        program,
-        ema=ema is not None,
-        rings=tuple(r.data.shape[1] for r in rings),
-        packs=packs,
-        counted=counted.shape[0] if counted_here else 0,
+    ins, outs, chunk_sums = _operands(
+        plan, batch, shift, steps, counted, packs, ema, rings, hists, hist_rows, update, interpret
+    )
+    rows = plan.rows
+    static = Static(
         rows=rows,
-        batch=width,
-        grouped=batch.grouped,
-        gather=gather,
-        hists=len(hists),
+        batch=batch.batch,
+        packs=packs,
+        counted=counted.shape[0] if plan.counted_here else 0,
+        gather=plan.gather,
         hist_bins=tuple(h.bins for h in hist_rows),
-        pairs=pairs.sizes if pairs else (),
+        pairs=plan.pairs.sizes if plan.pairs else (),
         sources=not batch.grouped and batch.src == tuple(range(rows)),
-        updates=(ema is not None, listed_sums) if own else None,
     )
     # A program of group rows mostly finds its chunk empty or nearly so: with fewer warps
     # more such programs run at once (docs/benchmarks.md, "Per-group statistics"). A row
     # read from its list in blocks of up to 512 entries folds them faster with 4 warps
     # too; in blocks of 1,024, with 8 (docs/benchmarks.md, "Scaling").
-    warps = 4 if batch.grouped or 0 < gather <= 512 else 8
-    floats, ints, *data = pl.pallas_call(
-        kernel,
-        out_shape=tuple(s for s, _ in outs),
-        grid=(rows + programs,) if n_chunks == 1 else (rows, n_chunks),
-        in_specs=[s for _, s in args],
-        out_specs=tuple(s for _, s in outs),
-        input_output_aliases={
-            **{first_ring + 2 * i: 2 + i for i in range(len(rings))},
-            **{first_hist + i: 2 + len(rings) + i for i in range(len(words))},
-            **(
-                _update.aliases(
-                    update,
-                    first_update,
-                    2 + len(rings) + len(words),
-                    shift=3,
-                    steps=4,
-                    ema=first_ring - 2 if ema is not None else None,
-                    pos=[first_ring + 2 * i + 1 for i in range(len(rings))],
-                )
-                if own and update is not None
-                else {}
-            ),
-        },
+    warps = 4 if batch.grouped or 0 < plan.gather <= 512 else 8
+    programs = sum(plan.pairs.sizes) if plan.pairs else 0  # the pairs', past the rows'
+    layout = Layout.of(ins, outs)
+    out_ops = operands(outs)
+    results = pl.pallas_call(
+        functools.partial(program, layout=layout, static=static),
+        out_shape=tuple(jax.ShapeDtypeStruct(o.value.shape, o.value.dtype) for o in out_ops),
+        grid=(rows + programs,) if plan.n_chunks == 1 else (rows, plan.n_chunks),
+        in_specs=[o.spec for o in operands(ins)],
+        out_specs=tuple(o.spec for o in out_ops),
+        input_output_aliases=aliases(ins, outs),
         interpret=interpret,
         compiler_params=None if interpret else plt.CompilerParams(num_warps=warps),
-    )(*(a for a, _ in args))
-    floats = floats.reshape(rows, n_chunks, 8)
-    ints = ints.reshape(rows, n_chunks, n_int)
+    )(*(o.value for o in operands(ins)))
+    out: KernelOut[jax.Array] = jax.tree.unflatten(layout.outs, results)
+    stats = _stats(plan, out, packs, ema is not None, chunk_sums)
+    updated = None
+    if update is not None and out.update is not None:
+        updated = _update.from_kernel(update, out.update)
+    return stats, out.rings, tuple(HistIn(h.counted, h.lo, h.hi) for h in out.hists), updated
+
+
+class _Plan(NamedTuple):
+    """How `fold` lays out a batch of `rows` rows: the entries a row reads from its list
+    at a time (`gather`; 0: rows read from the batch), each row's `n_chunks` chunks of
+    `chunk` entries, whether its rows are `ranked` (an EMA or a ring), whether the kernel
+    reads the counted rows (`counted_here`), the histogram pairs counted by programs of
+    their own (`pairs`), and whether each row's program updates its fields (`own`)."""
+
+    rows: int
+    gather: int
+    chunk: int
+    n_chunks: int
+    ranked: bool
+    counted_here: bool
+    pairs: Pairs | None
+    own: bool
+
+    @classmethod
+    def of(
+        cls,
+        batch: Selected,
+        counted: jax.Array,
+        packs: int,
+        ranked: bool,
+        listed: bool,
+        hist_rows: tuple[HistRows, ...],
+        update: _update.InKernel | None,
+    ) -> "_Plan":
+        rows, width = batch.rows, batch.batch
+        gather = _reached.block(width) if listed else 0
+        chunk, n_chunks, _ = (
+            (gather, 1, False) if gather else chunking(rows, width, batch.grouped, ranked=ranked)
+        )
+        # The counted rows are summed over every entry, not the reached ones: read with the
+        # batch, or where the rows are read from the lists, by the listing's kernel.
+        counted_here = bool(packs and counted.shape[0]) and not listed
+        # Ungrouped rows read from the lists have hundreds of entries a step: their
+        # histograms are counted by programs of their own, one per (row, histogram row)
+        # pair, beside the rows' folds, where in the rows' programs the count ran after
+        # the fold (docs/benchmarks.md, "Scaling"). Group rows have a few entries each.
+        pairs = Pairs.of(hist_rows, batch.src) if hist_rows and not batch.grouped else None
+        own = update is not None and n_chunks == 1
+        return cls(rows, gather, chunk, n_chunks, ranked, counted_here, pairs, own)
+
+
+def _operands(
+    plan: _Plan,
+    batch: Selected,
+    shift: jax.Array,
+    steps: jax.Array,
+    counted: jax.Array,
+    packs: int,
+    ema: EmaIn | None,
+    rings: tuple[RingIn, ...],
+    hists: tuple[HistIn, ...],
+    hist_rows: tuple[HistRows, ...],
+    update: _update.InKernel | None,
+    interpret: bool,
+) -> tuple[KernelIn[Operand], KernelOut[Operand], jax.Array | None]:
+    """The kernel's inputs and outputs (`fold`'s arguments, laid out as `plan` says), and
+    where the rows are read from the lists, the counted rows' chunk sums (else None)."""
+    rows, pairs = plan.rows, plan.pairs
+    table = _table(batch, ema, rings, () if pairs else hist_rows)
+    blocks = _Blocks(rows, pairs is not None)
+    one = blocks.cols(1)
+
+    def col(a: jax.Array) -> Operand:
+        return Operand(a.reshape(rows, 1), one)
+
+    ok, values, bad = (blocks.whole(a) for a in (batch.ok, batch.values, batch.bad))
+    shift_in, steps_in = col(shift), col(steps.astype(jnp.uint32))
+    table_in = Operand(jnp.asarray(table), blocks.cols(table.shape[1]))
+    ids = blocks.whole(batch.ids) if batch.grouped else None
+    lists: tuple[Operand | None, ...] = (None,) * 3
+    pair_table = counts_in = chunk_sums = None
+    if plan.gather:
+        reached, chunk_sums = _reached.reached(batch, counted if packs else counted[:0], interpret)
+        lists = tuple(None if a is None else blocks.whole(a) for a in reached)
+        if pairs:
+            pair_table = blocks.whole(jnp.asarray(pairs.table))
+    elif reads_counts(rows, batch.batch, batch.grouped, plan.ranked):
+        counts = chunk_counts(batch, plan.chunk)
+        counts_in = Operand(counts, blocks.cols(pl.next_power_of_2(plan.n_chunks)))
+    counted_in = None
+    if plan.counted_here:
+        counted_in = blocks.whole(counted_input(counted, batch.values.shape[0]))
+    ema_in = None if ema is None else (col(ema.ema_w), col(ema.ema_off))
+    # With `update`, each row's program reads and writes its own `pos` (windows' have
+    # every row).
+    ring_in = tuple(
+        RingOf(blocks.whole(r.data), col(r.pos) if plan.own else blocks.whole(r.pos)) for r in rings
+    )
+    hist_in = tuple(HistOf(*map(blocks.whole, h)) for h in hists)
+    fields_in = fields_out = None
+    if update is not None and plan.own:
+        assert len(rings) == len(update.rows.windows)
+        sums = chunk_sums if packs and chunk_sums is not None and chunk_sums.shape[0] else None
+        fields_in, fields_out = _update.kernel_operands(
+            update,
+            col,
+            blocks.whole,
+            shift=shift_in,
+            steps=steps_in,
+            ema=ema_in,
+            pos=tuple(r.pos for r in ring_in),
+            listed_sums=None if sums is None else blocks.whole(sums),
+        )
+    ins: KernelIn[Operand] = KernelIn(
+        ok=ok,
+        values=values,
+        bad=bad,
+        shift=shift_in,
+        steps=steps_in,
+        table=table_in,
+        ids=ids,
+        listed=lists[0],
+        reached=lists[1],
+        flags=lists[2],
+        pairs=pair_table,
+        chunk_counts=counts_in,
+        counted=counted_in,
+        ema_w=ema_in[0] if ema_in else None,
+        ema_off=ema_in[1] if ema_in else None,
+        rings=ring_in,
+        hists=hist_in,
+        update=fields_in,
+    )
+    n_int, n_chunks = pl.next_power_of_2(2 + packs), plan.n_chunks
+    floats = blocks.per_program(jax.ShapeDtypeStruct((rows, 8 * n_chunks), jnp.float32), 8)
+    ints = blocks.per_program(jax.ShapeDtypeStruct((rows, n_int * n_chunks), jnp.int32), n_int)
+    rings_out = tuple(r.data for r in ring_in)
+    return ins, KernelOut(floats, ints, rings_out, hist_in, fields_out), chunk_sums
+
+
+def _stats(
+    plan: _Plan, out: KernelOut[jax.Array], packs: int, ema: bool, chunk_sums: jax.Array | None
+) -> Batch:
+    """The rows' statistics from the programs' (`out.floats`, `out.ints`; a chunked row's
+    combined, `combine`) and the counted rows' sums, from the listing's chunk sums where
+    the rows were read from the lists (`chunk_sums`)."""
+    rows, n_chunks = plan.rows, plan.n_chunks
+    floats = out.floats.reshape(rows, n_chunks, 8)
+    ints = out.ints.reshape(rows, n_chunks, -1)
     floats, ints = (floats[:, 0], ints[:, 0]) if n_chunks == 1 else combine(floats, ints)
-    if listed:
-        assert chunk_sums is not None  # `listed`: the rows were read from the lists
+    if plan.gather:
+        assert chunk_sums is not None  # `gather`: the rows were read from the lists
         counted_sums = _reached.summed(chunk_sums)
         counted_sums = jnp.pad(counted_sums, (0, rows * packs - counted_sums.shape[0]))
     else:
         counted_sums = ints[:, 2 : 2 + packs].T.reshape(-1)
-    stats = Batch(
+    return Batch(
         ints[:, 0],
         *(floats[:, i] for i in range(5)),
         nonfinite=ints[:, 1],
-        ema=floats[:, 5] if ema is not None else None,
+        ema=floats[:, 5] if ema else None,
         counted_sums=counted_sums,
     )
-    data, words = data[: len(rings)], data[len(rings) :]
-    words, updated = words[: 3 * len(hists)], words[3 * len(hists) :]
-    hists = tuple(HistIn(*words[i : i + 3]) for i in range(0, len(words), 3))
-    return (
-        stats,
-        tuple(data),
-        hists,
-        _update.from_kernel(update, updated) if own and update is not None else None,
-    )
+
+
+def _table(
+    batch: Selected, ema: EmaIn | None, rings: tuple[RingIn, ...], hist_rows: tuple[HistRows, ...]
+) -> np.ndarray:
+    """The rows' static ints (`Table`): the EMA coefficient's bits, the row's selection,
+    each ring's `row` and `pos_row`, each histogram's row and range where the rows'
+    programs count them; padded to a power of two of columns."""
+    rows = batch.rows
+    coeff = np.zeros(rows, np.float32) if ema is None else np.asarray(ema.coeff, np.float32)
+    table = [coeff.view(np.int32)[:, None], batch.table()]
+    for r in rings:
+        table += [np.stack([np.asarray(r.row, np.int32), np.asarray(r.pos_row, np.int32)], 1)]
+    for h in hist_rows:
+        bits = [np.asarray(a, np.float32).view(np.int32) for a in (h.lo, h.hi)]
+        table += [np.stack([np.asarray(h.row, np.int32), *bits], 1)]
+    out = np.concatenate(table, axis=1).astype(np.int32)
+    return np.pad(out, ((0, 0), (0, pl.next_power_of_2(out.shape[1]) - out.shape[1])))
+
+
+class _Blocks(NamedTuple):
+    """The kernel's blocks over its `rows` rows, one a program (`pairs`: with the pairs'
+    programs past the rows', which take the last row's blocks and write none)."""
+
+    rows: int
+    pairs: bool
+
+    def whole(self, a: jax.Array) -> Operand:
+        """`a` read whole by every program."""
+        return Operand(a, pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim))
+
+    def _row_of(self, i: jax.Array) -> jax.Array:
+        return jnp.minimum(i, self.rows - 1) if self.pairs else i
+
+    def cols(self, n: int) -> pl.BlockSpec:
+        """The program's row of `[R, n]`."""
+        return pl.BlockSpec((1, n), lambda i, *c: (self._row_of(i), 0))
+
+    def per_program(self, out: jax.ShapeDtypeStruct, n: int) -> Operand:
+        """`out` (`[R, n * chunks]`), `n` columns a program: its row's, its chunk's."""
+        return Operand(
+            out, pl.BlockSpec((1, n), lambda i, *c: (i, *c) if c else (self._row_of(i), 0))
+        )

@@ -2,6 +2,7 @@
 
 import jax
 import jax.numpy as jnp
+from jax.typing import DTypeLike
 
 from .. import _count
 from .._numerics import kahan_add, log2_keep
@@ -28,7 +29,9 @@ from ._state import (
 from ._update import period_mean
 
 
-def _union(wa: Ring, sa: jax.Array, wb: Ring, sb: jax.Array, dt):
+def _union(
+    wa: Ring, sa: jax.Array, wb: Ring, sb: jax.Array, dt: DTypeLike
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Both rings' values in arrival order, oldest first: by age, then `a` before `b`
     (within a step the lower worker arrives first), invalid entries in front."""
     parts = [ordered(wa, sa, dt), ordered(wb, sb, dt)]
@@ -39,7 +42,7 @@ def _union(wa: Ring, sa: jax.Array, wb: Ring, sb: jax.Array, dt):
     return take(vals), take(age), take(valid)
 
 
-def _newest(vals, age, valid, size: int, steps: jax.Array) -> Ring:
+def _newest(vals: jax.Array, age: jax.Array, valid: jax.Array, size: int, steps: jax.Array) -> Ring:
     """A ring holding the newest `size` of `_union`'s entries, stamped relative to `steps`
     (per ring row)."""
     keep = slice(vals.shape[1] - size, vals.shape[1])
@@ -72,7 +75,9 @@ def check_mergeable(plan: StreamPlan) -> None:
         )
 
 
-def _merge_ema(plan: StreamPlan, a: StreamState, b: StreamState):
+def _merge_ema(
+    plan: StreamPlan, a: StreamState, b: StreamState
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, tuple[Ring, ...]]:
     """EMA of both workers' values in arrival order (see `EmaGroup`), relative to `a`'s
     offset (`b`'s where `a` has no value)."""
     check_mergeable(plan)

@@ -19,6 +19,7 @@ flags summed beside it, and with them its reached entries' indices (`Reached`).
 """
 
 import functools
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
@@ -98,7 +99,7 @@ def chunk(batch: int) -> int:
 
 
 def _list_kernel(
-    ok_ref: Any, bad_ref: Any, *refs, batch: int, chunk: int, counted: int, values: bool
+    ok_ref: Any, bad_ref: Any, *refs: Any, batch: int, chunk: int, counted: int, values: bool
 ) -> None:
     """One chunk of a source row: each listed entry stored at its rank in the chunk, in
     the chunk's segment of the row's list, and the chunk's listed entries counted: with
@@ -107,13 +108,14 @@ def _list_kernel(
     instead. The last chunk of a row that chunks do not divide ends at the row's end, its
     entries of the chunk before masked out."""
     x_ref = counted_ref = None
+    rest = list(refs)
     if values:
-        x_ref, *refs = refs
+        x_ref, *rest = rest
     if counted:
-        counted_ref, *refs = refs
-    listed_ref, counts_ref, *refs = refs
-    flags_ref = refs.pop(0) if values else None
-    sums_ref = refs[0] if counted else None
+        counted_ref, *rest = rest
+    listed_ref, counts_ref, *rest = rest
+    flags_ref = rest.pop(0) if values else None
+    sums_ref = rest[0] if counted else None
     row, c = pl.program_id(0), pl.program_id(1)
     sources = ok_ref.shape[0]
     lo = c * chunk
@@ -154,7 +156,9 @@ def _list_kernel(
         listing()
 
 
-def list_reader(listed_ref, counts_ref, src, batch: int):
+def list_reader(
+    listed_ref: Any, counts_ref: Any, src: jax.Array, batch: int
+) -> tuple[jax.Array, Callable[..., tuple[jax.Array, jax.Array]]]:
     """Inside the fused kernel: the length of source row `src`'s list (`Reached`, its
     `listed` and `counts` as `listed_ref` and `counts_ref`, of a batch of `batch` entries),
     and `entries(start, n)`: which of the list's entries `start` to `start + n - 1` it has
@@ -170,7 +174,7 @@ def list_reader(listed_ref, counts_ref, src, batch: int):
     size = chunk(batch)
     zero = jnp.zeros((), listed_ref.dtype)
 
-    def entries(start, n: int) -> tuple[jax.Array, jax.Array]:
+    def entries(start: Any, n: int) -> tuple[jax.Array, jax.Array]:
         k = jax.lax.broadcasted_iota(jnp.int32, (1, n), 1) + start
         there = k < length
         before = ends <= k  # [chunks, n]: the chunks wholly before entry k
@@ -195,7 +199,7 @@ def reached(
     n = -(-width // size)
     values = by_value(batch)
 
-    def whole(a):
+    def whole(a: jax.Array | jax.ShapeDtypeStruct) -> pl.BlockSpec:
         return pl.BlockSpec(a.shape, lambda *ids: (0,) * a.ndim)
 
     ins = [batch.ok, batch.bad, *([batch.values] if values else [])]
@@ -222,7 +226,7 @@ def reached(
     return Reached(listed, counts, flags), rest[0] if rows else counts[:0]
 
 
-def summed_in_kernel(sums_ref, row) -> jax.Array:
+def summed_in_kernel(sums_ref: Any, row: jax.Array) -> jax.Array:
     """Inside a kernel: counted row `row`'s sum (`[1, 1]`; 0 for `row` -1) from its chunks'
     (`sums_ref`, `[C, n]`, `reached`'s), as `summed` adds them outside; or so a source
     row's flags (`Reached.flags`)."""

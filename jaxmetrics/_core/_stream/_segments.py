@@ -178,13 +178,17 @@ def segment_batch(
 Scatter = Callable[[str, Any, jax.Array, int, tuple[jax.Array, ...]], list[jax.Array]]
 
 
-def scatter_each(how: str, fill, where: jax.Array, size: int, xs) -> list[jax.Array]:
+def scatter_each(
+    how: str, fill: Any, where: jax.Array, size: int, xs: tuple[jax.Array, ...]
+) -> list[jax.Array]:
     """Per `x` of `xs` (each flat, like `where`): `[size]` filled with `fill`, its entries
     combined into slot `where` by `how` ("add", "min", "max"); slots past `size` dropped."""
     return [getattr(jnp.full((size,), fill, x.dtype).at[where], how)(x, mode="drop") for x in xs]
 
 
-def scatter_stacked(how: str, fill, where: jax.Array, size: int, xs) -> list[jax.Array]:
+def scatter_stacked(
+    how: str, fill: Any, where: jax.Array, size: int, xs: tuple[jax.Array, ...]
+) -> list[jax.Array]:
     """`scatter_each` as one scatter of the `xs` stacked as channels."""
     x = jnp.stack(xs, axis=1)
     out = getattr(jnp.full((size, len(xs)), fill, x.dtype).at[where], how)(x, mode="drop")
@@ -192,7 +196,13 @@ def scatter_stacked(how: str, fill, where: jax.Array, size: int, xs) -> list[jax
 
 
 def _segment_batch(
-    scatter: Scatter, values, ok, bad, group, shift, groups: np.ndarray
+    scatter: Scatter,
+    values: jax.Array,
+    ok: jax.Array,
+    bad: jax.Array,
+    group: jax.Array,
+    shift: jax.Array,
+    groups: np.ndarray,
 ) -> tuple[jax.Array, ...]:
     dt = values.dtype
     sources, width = shift.shape

@@ -12,6 +12,7 @@ reductions need.
 
 import dataclasses
 import functools
+from collections.abc import Callable, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -71,13 +72,13 @@ class Selected:
             self, src=pick(self.src), kind=pick(self.kind), group=pick(self.group)
         )
 
-    def arrays(self, fn) -> "Selected":
+    def arrays(self, fn: Callable[[jax.Array], jax.Array]) -> "Selected":
         """`fn` applied to each source array and the group index."""
         return dataclasses.replace(
             self, values=fn(self.values), ok=fn(self.ok), bad=fn(self.bad), ids=fn(self.ids)
         )
 
-    def group_index(self, kinds) -> jax.Array:
+    def group_index(self, kinds: Sequence[int] | np.ndarray) -> jax.Array:
         """Per grouping in `kinds` (-1: none), its group index (`[n, B]` int32); 0 for
         every entry where none, so that a row of every entry is group 0 of it."""
         ids = jnp.concatenate([self.ids, jnp.zeros_like(self.ids[:1])])

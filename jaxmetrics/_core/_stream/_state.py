@@ -9,6 +9,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 
 from .. import _count
 from .._count import Count
@@ -35,7 +36,7 @@ class Ring(NamedTuple):
     def size(self) -> int:
         return self.data.shape[-2]
 
-    def values(self, dt) -> jax.Array:
+    def values(self, dt: DTypeLike) -> jax.Array:
         """`[..., rows, size]` values of dtype `dt` (the stream's)."""
         return _from_words(self.data[..., :-1], dt)
 
@@ -45,7 +46,7 @@ class Ring(NamedTuple):
         return self.data[..., -1]
 
 
-def ring_words(dt) -> int:
+def ring_words(dt: DTypeLike) -> int:
     """uint32 words that hold one value of the stream's dtype `dt` (float32 or float64)."""
     return jnp.dtype(dt).itemsize // 4
 
@@ -56,7 +57,7 @@ def _to_words(x: jax.Array) -> jax.Array:
     return w if x.dtype.itemsize == 8 else w[..., None]
 
 
-def _from_words(w: jax.Array, dt) -> jax.Array:
+def _from_words(w: jax.Array, dt: DTypeLike) -> jax.Array:
     """`_to_words`' inverse."""
     return jax.lax.bitcast_convert_type(w if jnp.dtype(dt).itemsize == 8 else w[..., 0], dt)
 
@@ -170,7 +171,7 @@ class StreamPlan:
         return np.array([i in coeff for i in rows]), np.array([coeff.get(i, fill) for i in rows])
 
     @classmethod
-    def build(cls, rows: Sequence[MetricSpec], dtype) -> "StreamPlan":
+    def build(cls, rows: Sequence[MetricSpec], dtype: DTypeLike) -> "StreamPlan":
         rows = tuple(rows)
         ema_rows = tuple(i for i, r in enumerate(rows) if r.stats.ema is not None)
         coeffs = tuple(float(rows[i].stats.ema.coeff) for i in ema_rows)  # type: ignore[union-attr]
@@ -219,7 +220,7 @@ class StreamPlan:
         )
 
 
-def _ring(rows: int, size: int, dt) -> Ring:
+def _ring(rows: int, size: int, dt: DTypeLike) -> Ring:
     return Ring(
         jnp.zeros((rows, size, ring_words(dt) + 1), jnp.uint32),
         jnp.zeros((rows,), jnp.int32),
@@ -330,7 +331,7 @@ def rotated(r: Ring) -> Ring:
     )
 
 
-def ordered(w: Ring, steps: jax.Array, dt) -> tuple[jax.Array, jax.Array, jax.Array]:
+def ordered(w: Ring, steps: jax.Array, dt: DTypeLike) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Ring contents right-aligned in arrival order (oldest first): values, their ages
     in arrival steps (`steps - stamp`, `steps` per ring row), and validity."""
     r = rotated(w)

@@ -24,6 +24,7 @@ from jax.experimental import pallas as pl
 from .. import _count
 from .._count import Count
 from .._numerics import kahan_add, log2_keep, two_sum
+from ._layout import FieldsIn, FieldsOut, Operand, Words
 from ._state import INT32_MAX, StreamState
 
 
@@ -92,7 +93,7 @@ class Rows(NamedTuple):
     windows: tuple[tuple[int, np.ndarray | jax.Array], ...]
 
 
-def update(f: Fields, b: Batch, shift, rows: Rows, wt) -> Fields:
+def update(f: Fields, b: Batch, shift: jax.Array, rows: Rows, wt: jnp.dtype) -> Fields:
     """`f` with the batch's statistics `b` folded in (its counted sums aside; `shift`: what
     the batch's deviations were taken from, the period's mean where it has values; `wt`:
     the dtype of weights)."""
@@ -117,6 +118,7 @@ def update(f: Fields, b: Batch, shift, rows: Rows, wt) -> Fields:
 
     ema, ema_off, ema_w, ema_n = f.ema, f.ema_off, f.ema_w, f.ema_n
     if rows.is_ema is not None:
+        assert b.ema is not None  # EMA rows have their weighted sum
         ema, ema_off, ema_w = _ema_update(f, rows, k, shift, mean, b.ema)
         ema_n = ema_n + jnp.where(rows.is_ema, jnp.minimum(k, INT32_MAX - ema_n), 0)
     pos, filled = [], []
@@ -147,7 +149,9 @@ def update(f: Fields, b: Batch, shift, rows: Rows, wt) -> Fields:
     )
 
 
-def ema_offset(ema_w, ema_off, shift) -> tuple[jax.Array, jax.Array]:
+def ema_offset(
+    ema_w: jax.Array, ema_off: jax.Array, shift: jax.Array
+) -> tuple[jax.Array, jax.Array]:
     """Per row, from the state's `ema_w` and `ema_off` and the batch's `shift`: the offset
     the batch's EMA deviations are taken from, and whether this batch seeds the EMA (none
     seen yet)."""
@@ -155,9 +159,12 @@ def ema_offset(ema_w, ema_off, shift) -> tuple[jax.Array, jax.Array]:
     return jnp.where(seeded, ema_off, shift), ~seeded
 
 
-def _ema_update(f: Fields, rows: Rows, k, shift, mean, new):
+def _ema_update(
+    f: Fields, rows: Rows, k: jax.Array, shift: jax.Array, mean: jax.Array, new: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     """New (ema, ema_off, ema_w) of every row (rows without an EMA keep theirs), from the
     batch's sum of the weighted deviations, `new`."""
+    assert rows.is_ema is not None  # called for EMA rows only
     dt = f.ema.dtype
     c_all = jnp.asarray(rows.coeff, dt)
     # The deviations were taken off `base`, known before the batch. A seeding batch's
@@ -206,69 +213,69 @@ class InKernel(NamedTuple):
     counts: Count
 
 
-def kernel_inputs(u: InKernel) -> list[jax.Array]:
-    """The fields the kernel reads besides its own inputs (the mean, the step, the EMA's
-    offset and weight, the windows' `pos`), in `row_updater`'s order: count, non-finite
-    count, m2, sum, min, max, with an EMA the EMA and its count, each window's `filled`,
-    each `[R]`; then the counted rows' counts as `[packs, R]`."""
+def kernel_operands(
+    u: InKernel,
+    col: Callable[[jax.Array], Operand],
+    whole: Callable[[jax.Array], Operand],
+    *,
+    shift: Operand,
+    steps: Operand,
+    ema: tuple[Operand, Operand] | None,
+    pos: tuple[Operand, ...],
+    listed_sums: Operand | None,
+) -> tuple[FieldsIn[Operand], FieldsOut[Operand]]:
+    """The fields the fused kernel updates, as its inputs and outputs (`_layout`): each
+    one operand in both, updated in place (an output in a buffer of its own costs a copy
+    into the loop's state). `col` makes a `[R]` field's operand (a `[1, 1]` block per
+    row), `whole` the counted rows' counts' (`[packs, R]`). The kernel's own inputs of
+    the mean (`shift`), `steps`, the EMA's weight and offset (`ema`; None without EMA
+    rows) and each window's `pos` are updated in place too; `listed_sums` (the counted
+    rows' chunk sums, where the rows are read from the lists) is read only."""
     f = u.fields
-    ins = [*f.count, *f.nonfinite, f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max]
+    packed = _packed(u)
+    count, nonfinite = Words(*map(col, f.count)), Words(*map(col, f.nonfinite))
+    m2, m2_c, total, total_c, vmin, vmax = map(col, (f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max))
+    value = ema_n = None
     if u.rows.is_ema is not None:
-        ins += [f.ema, f.ema_n]
-    return ins + list(f.filled) + _packed(u)
-
-
-def kernel_outputs(u: InKernel) -> list[jax.ShapeDtypeStruct]:
-    """What the kernel writes: every field `update` changes, and the counted rows' counts
-    (`[packs, R]`); `Out` names their positions."""
-    outs = _written(u.fields, u.rows.is_ema is not None) + _packed(u)
-    return [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in outs]
-
-
-def _written(f: Fields, ema: bool) -> list[jax.Array]:
-    """The fields `update` changes, in the kernel's output order (`Out`); the EMA's only
-    with EMA rows (`ema`)."""
-    out = [*f.count, *f.nonfinite, f.mean, f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max, f.steps]
-    if ema:
-        out += [f.ema, f.ema_off, f.ema_w, f.ema_n]
-    return out + [*f.pos, *f.filled]
-
-
-class Out:
-    """Positions in `kernel_outputs`."""
-
-    MEAN, STEPS = 4, 11
-    EMA, EMA_OFF, EMA_W, EMA_N = 12, 13, 14, 15
-
-    @staticmethod
-    def pos(u: InKernel, i: int) -> int:
-        return Out.EMA + 4 * (u.rows.is_ema is not None) + i
-
-    @staticmethod
-    def of_inputs(u: InKernel) -> list[int]:
-        """Per `kernel_inputs` entry, its output: each field is updated in place."""
-        ema = u.rows.is_ema is not None
-        windows = len(u.fields.pos)
-        out = [0, 1, 2, 3, 5, 6, 7, 8, 9, 10] + ([Out.EMA, Out.EMA_N] if ema else [])
-        first = Out.pos(u, windows)
-        out += list(range(first, first + windows))
-        return out + [first + windows + i for i in range(len(_packed(u)))]
-
-
-def aliases(u: InKernel, first_in: int, first_out: int, *, shift, steps, ema, pos) -> dict:
-    """The fused kernel's input-output aliases of the fields it updates, each in place (an
-    output in a buffer of its own costs a copy into the loop's state): `kernel_inputs`
-    from input `first_in` on, to `kernel_outputs` from output `first_out` on; and the
-    kernel's own inputs of the fields, at `shift` (the mean), `steps`, `ema` (the EMA's
-    weight, then its offset; None without EMA rows) and `pos` (each window's)."""
-    out = {first_in + i: first_out + o for i, o in enumerate(Out.of_inputs(u))}
-    out[shift] = first_out + Out.MEAN
-    out[steps] = first_out + Out.STEPS
-    if ema is not None:
-        out[ema], out[ema + 1] = first_out + Out.EMA_W, first_out + Out.EMA_OFF
-    for i, at in enumerate(pos):
-        out[at] = first_out + Out.pos(u, i)
-    return out
+        value, ema_n = col(f.ema), col(f.ema_n)
+    filled = tuple(map(col, f.filled))
+    counts = Words(*map(whole, packed)) if packed else None
+    ins = FieldsIn(
+        count,
+        nonfinite,
+        m2,
+        m2_c,
+        total,
+        total_c,
+        vmin,
+        vmax,
+        value,
+        ema_n,
+        filled,
+        counts,
+        listed_sums,
+    )
+    ema_w, ema_off = ema if ema is not None else (None, None)
+    outs = FieldsOut(
+        count,
+        nonfinite,
+        shift,
+        m2,
+        m2_c,
+        total,
+        total_c,
+        vmin,
+        vmax,
+        steps,
+        value,
+        ema_off,
+        ema_w,
+        ema_n,
+        pos,
+        filled,
+        counts,
+    )
+    return ins, outs
 
 
 def _packed(u: InKernel) -> list[jax.Array]:
@@ -278,40 +285,35 @@ def _packed(u: InKernel) -> list[jax.Array]:
     return [a.reshape(packs, rows) for a in u.counts] if packs else []
 
 
-def from_kernel(u: InKernel, outs: list[jax.Array]) -> tuple[Fields, Count]:
-    """The fields and counted rows' counts that the kernel wrote (`kernel_outputs`)."""
+def from_kernel(u: InKernel, outs: FieldsOut[jax.Array]) -> tuple[Fields, Count]:
+    """The fields and counted rows' counts that the kernel wrote (`kernel_operands`)."""
     f = u.fields
-    outs = [a.reshape(-1) for a in outs]
-    count, nonfinite = Count(*outs[0:2]), Count(*outs[2:4])
-    mean, m2, m2_c, total, total_c, vmin, vmax, steps = outs[4:12]
-    rest = outs[12:]
+    o = jax.tree.map(lambda a: a.reshape(-1), outs)
     ema = (f.ema, f.ema_off, f.ema_w, f.ema_n)
-    if u.rows.is_ema is not None:
-        ema, rest = tuple(rest[:4]), rest[4:]
-    w = len(f.pos)
-    pos, filled, rest = tuple(rest[:w]), tuple(rest[w : 2 * w]), rest[2 * w :]
-    counts = Count(*rest) if rest else u.counts
+    if o.ema is not None:
+        assert o.ema_off is not None and o.ema_w is not None and o.ema_n is not None
+        ema = (o.ema, o.ema_off, o.ema_w, o.ema_n)
     fields = Fields(
-        count,
-        nonfinite,
-        mean,
-        m2,
-        m2_c,
-        total,
-        total_c,
-        vmin,
-        vmax,
+        Count(*o.count),
+        Count(*o.nonfinite),
+        o.mean,
+        o.m2,
+        o.m2_c,
+        o.sum,
+        o.sum_c,
+        o.min,
+        o.max,
         *ema,
-        steps=steps,
-        pos=pos,
-        filled=filled,
+        steps=o.steps,
+        pos=o.pos,
+        filled=o.filled,
     )
-    return fields, counts
+    return fields, u.counts if o.counts is None else Count(*o.counts)
 
 
 def row_updater(
-    ins: Sequence[Any],
-    outs: Sequence[Any],
+    ins: FieldsIn[Any],
+    outs: FieldsOut[Any],
     shift: jax.Array,
     steps: jax.Array,
     ema: tuple[jax.Array, jax.Array, jax.Array, jax.Array] | None,
@@ -321,29 +323,25 @@ def row_updater(
     """Inside the fused kernel, by the program of row `row` (which folds the whole row):
     the row's fields read from `ins` now, so that the reads overlap the fold, and what
     then updates them (`update`) with the batch's statistics (`Batch`) and the sums of its
-    counted rows (`[1, 1]` each) and writes them to `outs`. `ins` and `outs` are
-    `kernel_inputs` and `kernel_outputs` (`[1, 1]` blocks of the row, the counts whole);
-    `shift` and `steps` the row's mean and arrival step; `ema` its EMA's `(is_ema, coeff,
-    ema_w, ema_off)` (None without EMA rows); `windows` per window its size, whether the
-    row is in it and the row's `pos`."""
-    ins = list(ins)
-
-    def take(n):
-        return [ins.pop(0)[...] for _ in range(n)]
-
-    count_hi, count_lo, nf_hi, nf_lo, m2, m2_c, total, total_c, vmin, vmax = take(10)
+    counted rows (`[1, 1]` each) and writes them to `outs` (`kernel_operands`' refs:
+    `[1, 1]` blocks of the row, the counts whole); `shift` and `steps` the row's mean and
+    arrival step; `ema` its EMA's `(is_ema, coeff, ema_w, ema_off)` (None without EMA
+    rows); `windows` per window its size, whether the row is in it and the row's `pos`."""
+    count, nonfinite = (Count(*(a[...] for a in w)) for w in (ins.count, ins.nonfinite))
+    m2, m2_c, total, total_c, vmin, vmax = (
+        a[...] for a in (ins.m2, ins.m2_c, ins.sum, ins.sum_c, ins.min, ins.max)
+    )
     # Without EMA rows `update` leaves these as they are and nothing writes them back.
     ema_fields = (shift * 0,) * 4
     rows = Rows(None, None, tuple((size, mine) for size, mine, _ in windows))
     if ema is not None:
+        assert ins.ema is not None and ins.ema_n is not None  # `kernel_operands`: with EMA rows
         is_ema, coeff, ema_w, ema_off = ema
-        value, ema_n = take(2)
-        ema_fields = (value, ema_off, ema_w, ema_n)
+        ema_fields = (ins.ema[...], ema_off, ema_w, ins.ema_n[...])
         rows = rows._replace(is_ema=is_ema, coeff=coeff)
-    pos, filled = [p for *_, p in windows], take(len(windows))
     f = Fields(
-        Count(count_hi, count_lo),
-        Count(nf_hi, nf_lo),
+        count,
+        nonfinite,
         shift,
         m2,
         m2_c,
@@ -353,18 +351,31 @@ def row_updater(
         vmax,
         *ema_fields,
         steps=steps,
-        pos=tuple(pos),
-        filled=tuple(filled),
+        pos=tuple(p for *_, p in windows),
+        filled=tuple(a[...] for a in ins.filled),
     )
-    counted = [(pl.ds(p, 1), pl.ds(row, 1)) for p in range(ins[0].shape[0])] if ins else []
-    counts = [Count(ins[0][at], ins[1][at]) for at in counted]
+    words = ins.counts
+    counted = [(pl.ds(p, 1), pl.ds(row, 1)) for p in range(words.hi.shape[0])] if words else []
+    counts = [Count(words.hi[at], words.lo[at]) for at in counted] if words else []
 
     def finish(b: Batch, csums: Sequence[jax.Array]) -> None:
-        written = _written(update(f, b, shift, rows, jnp.float32), ema is not None)
-        for out, value in zip(outs, written):
+        new = update(f, b, shift, rows, jnp.float32)
+        written = _written(new, ema is not None)
+        for out, value in zip(jax.tree.leaves(outs._replace(counts=None)), written, strict=True):
             out[...] = value
-        words = outs[len(written) :]
         for at, count, sums in zip(counted, counts, csums):
-            words[0][at], words[1][at] = _count.add(count, jnp.where(b.count < 0, 0, sums))
+            assert outs.counts is not None  # `counted`: there are counted rows
+            outs.counts.hi[at], outs.counts.lo[at] = _count.add(
+                count, jnp.where(b.count < 0, 0, sums)
+            )
 
     return finish
+
+
+def _written(f: Fields, ema: bool) -> list[jax.Array]:
+    """The fields `update` changes, in `FieldsOut`'s order; the EMA's only with EMA rows
+    (`ema`)."""
+    out = [*f.count, *f.nonfinite, f.mean, f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max, f.steps]
+    if ema:
+        out += [f.ema, f.ema_off, f.ema_w, f.ema_n]
+    return out + [*f.pos, *f.filled]
