@@ -334,6 +334,13 @@ class Channel:
             _log.debug("jaxmetrics report channel: %s (%s)", *self._choice)
         return self._choice
 
+    @property
+    def in_use(self) -> bool:
+        """Whether a program was traced that sends through the ring (it may still run
+        after `close`)."""
+        with self._lock:
+            return bool(self._sites)
+
     def send(self, *payload: Any) -> None:
         """In-graph: sends `payload` to the host (unordered with the program's other
         effects; ordered with this channel's other reports)."""

@@ -5,12 +5,20 @@ every vmapped seed's packed report, step, `when` and run index. `EmitReceiver` k
 seeds whose period ended and queues one writer job per record. A reporting wrapper's
 steps are env steps, which start again where a wrapper is stepped from a fresh state;
 `EnvStepsContinuation` carries them on from the run's last record.
+
+A report that reaches a closed Logger (closed while the jitted training still runs) is
+counted, not written, and the receiver returns normally: an exception raised in a host
+callback ends the training with XLA's opaque `CpuCallback error`, and the training's own
+result is worth more than its metrics. The loss is logged at once and raised by the
+Logger's next `close` (at the latest, at interpreter exit).
 """
 
 import functools
+import logging
+import threading
 import time
-from collections.abc import Callable, Sequence
-from typing import Any
+from collections.abc import Callable, Collection, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -23,6 +31,86 @@ from ._writer_thread import WriterThread
 
 # How long the writer thread lets an emit's callback finish before writing its records.
 _CALLBACK_GRACE_S = 0.005
+
+_log = logging.getLogger("jaxmetrics")
+
+CLOSE_AFTER_TRAINING = (
+    "Close the Logger after the training returns (a `with jm.Logger(...) as logger:` block "
+    "around ppo.train, or logger.close() after it)."
+)
+
+
+class WrapperPeriod(NamedTuple):
+    """A reporting wrapper's period, as traced: what `close` needs to say what it left
+    unreported."""
+
+    env_steps: int  # the period, in env steps over all envs and devices
+    batch: int  # env steps over all envs and devices in one step of the batch
+    planned: int | None  # the env steps the trainer runs to its end, where known
+
+
+def unreported(
+    periods: Collection[WrapperPeriod], calls: int, wrapper_steps: Sequence[int | None]
+) -> list[str]:
+    """What `close` says of the env steps a reporting wrapper left unreported.
+
+    The host sees a wrapper's steps at its period ends only: the steps after the last one
+    stay on the device with the trainer's final env state. Where the trainer's number of
+    env steps is known (Brax's `ppo.train` and `sac.train`, read when the env step is
+    traced), each run whose records end before it is told how many env steps are in no
+    record; elsewhere only a wrapper that wrote no record at all is (a loop of one's own
+    holds its final state, and the steps after its last record with it).
+    """
+    if not periods:
+        return []
+    every = " or ".join(f"{p:,}" for p in sorted({p.env_steps for p in periods}))
+    why = (
+        f"it reports every {every} env steps over all envs (report_every, rounded up to whole "
+        "steps of the batch; by default 100 steps of the batch)"
+    )
+    planned = {p.planned for p in periods} - {None}
+    if not planned:
+        if calls:
+            return []
+        return [
+            f"a reporting wrapper was traced but wrote no record: {why}, so a training that "
+            "ran ended before the first period did, and its episodes were not reported. "
+            "Pass a report_every of at most the training's env steps."
+        ]
+    total = max(p for p in planned if p is not None)
+    batch = max(p.batch for p in periods)
+    period = max(p.env_steps for p in periods)
+    fix = f"Pass a report_every that divides {total:,}"
+    if total % batch == 0 and total >= batch:
+        fix += f", e.g. {_divisor(total, batch, period):,}"
+    fix += "."
+    notices = []
+    for run, last in enumerate(wrapper_steps):
+        if last is not None and last >= total:
+            continue
+        who = f"run {run}: " if len(wrapper_steps) > 1 else ""
+        runs_to_end = f"{total:,} env steps Brax's trainer runs (to its end)"
+        if last is None:
+            lost = f"wrote no record: none of the {runs_to_end} is in one"
+        else:
+            lost = (
+                f"wrote its last record at env step {last:,}: the last {total - last:,} of "
+                f"the {runs_to_end} are in no record"
+            )
+        notices.append(
+            f"{who}a reporting wrapper {lost}, nor are the episodes that ended in them (how "
+            f"many, the host cannot know): {why}, and the trainer keeps its final env state "
+            "to itself, so the steps after the last period end never reach the host (seeing "
+            f"them would take a host round trip per step). {fix}"
+        )
+    return notices
+
+
+def _divisor(total: int, batch: int, period: int) -> int:
+    """The largest multiple of `batch` that divides `total` and is at most `period` (at
+    least `batch`)."""
+    steps = total // batch
+    return batch * next(d for d in range(min(period // batch, steps), 0, -1) if steps % d == 0)
 
 
 def _shifted(host: HostReport, tag: str, offset: int) -> dict[str, Any]:
@@ -78,6 +166,53 @@ class EnvStepsContinuation:
         return offset + raw, functools.partial(_shifted, host, self._tag, offset)
 
 
+class LateRecords:
+    """The records that reached the Logger after its `close`: counted, never written.
+
+    Args:
+      on_first: called (with the log message) at the first one, on the thread that
+        received it.
+    """
+
+    def __init__(self, on_first: Callable[[], None]):
+        self._on_first = on_first
+        self._lock = threading.Lock()
+        self._count = 0
+        self._first: tuple[int, int] | None = None  # (run, step) of the first
+
+    def add(self, run: int, step: int, from_wrapper: bool) -> None:
+        with self._lock:
+            self._count += 1
+            first = self._first is None
+            if first:
+                self._first = (run, step)
+        if first:
+            source = (
+                "a reporting wrapper (jmb.wrap, jmp.wrap, jm.wrap_step(..., logger=))"
+                if from_wrapper
+                else "Logger.emit"
+            )
+            _log.warning(
+                "jaxmetrics: the Logger that %s reports to was closed while the training "
+                "still runs: its record of run %d at step %d and every later one are not "
+                "written (the training goes on). They are counted, and the Logger's next "
+                "close() (at the latest, at interpreter exit) raises ReportsLostError with "
+                "the number. %s",
+                source,
+                run,
+                step,
+                CLOSE_AFTER_TRAINING,
+            )
+            self._on_first()
+
+    def take(self) -> tuple[int, tuple[int, int] | None]:
+        """(count, (run, step) of the first) since the last call."""
+        with self._lock:
+            taken = (self._count, self._first)
+            self._count, self._first = 0, None
+        return taken
+
+
 class EmitReceiver:
     """The emit's host callback `(packed, step, when, run) -> None`.
 
@@ -92,9 +227,12 @@ class EmitReceiver:
       thread: the writer thread.
       reports: where a bad run index, a reset's notice and the reports' non-finite
         counts are kept for the caller's thread.
+      late: where the records that reach a closed Logger are counted.
 
     Attributes:
       calls: callbacks received.
+      wrapper_steps: per run, the step of the last record of a reporting wrapper (None:
+        none yet).
     """
 
     def __init__(
@@ -105,12 +243,14 @@ class EmitReceiver:
         write_run: Callable[..., None],
         thread: WriterThread,
         reports: CallerReports,
+        late: LateRecords,
     ):
         self._runs, self._packer, self._write_run = runs, packer, write_run
-        self._thread, self._reports = thread, reports
+        self._thread, self._reports, self._late = thread, reports, late
         env_steps = [i.tag for i in tags if i.group == "counter" and i.metric == "env_steps"]
         self._continuation = EnvStepsContinuation(runs, next(iter(env_steps), None), reports)
         self.calls = 0
+        self.wrapper_steps: list[int | None] = [None] * runs
 
     def __call__(self, packed: tuple[Any, Any], step: Any, when: Any, run: Any) -> None:
         """The `io_callback`'s host function: the device waits until it returns."""
@@ -146,8 +286,11 @@ class EmitReceiver:
         floats = np.reshape(np.asarray(packed[0]), (n, -1))
         counts = np.reshape(np.asarray(packed[1]), (n, 2, -1))
         step, when, run = (np.reshape(np.asarray(a), (n,)) for a in (step, when, run))
-        # Raised inside the jitted call that emitted, the only place left to say it.
-        with self._thread.entry("emit") as put:
+        with self._thread.entry_if_open() as put:
+            if put is None:  # closed: counted, and the training goes on
+                for i in np.flatnonzero(when):
+                    self._late.add(int(run[i]), int(step[i]), from_wrapper)
+                return
             self.calls += 1
             queued = False
             for i in np.flatnonzero(when):
@@ -160,6 +303,7 @@ class EmitReceiver:
                 host = functools.partial(self._packer.unpack, floats[i], counts[i])
                 if from_wrapper:
                     s, host = self._continuation(r, s, host)
+                    self.wrapper_steps[r] = s
                 self._reports.check_later(s, (r,), counts[i])
                 if grace and not queued:
                     # The device waits for this callback, and JAX still runs Python after

@@ -25,20 +25,38 @@ class NonFiniteError(FloatingPointError):
 
 class ReportsLostError(RuntimeError):
     """In-graph reports were lost: the host fell more than the report ring's slots behind
-    the device, which overwrote reports the host had not taken.
+    the device, which overwrote reports the host had not taken (`ring_overrun`), or they
+    reached the Logger after its `close` (`after_close`).
 
     Attributes:
       lost: the number of reports lost since the last check.
     """
 
-    def __init__(self, lost: int, slots: int):
+    def __init__(self, lost: int, message: str):
         self.lost = lost
-        super().__init__(
+        super().__init__(message)
+
+    @classmethod
+    def ring_overrun(cls, lost: int, slots: int) -> "ReportsLostError":
+        return cls(
+            lost,
             f"{lost} in-graph report(s) were lost: the device wrote them over before the "
             f"host took them from the report ring of {slots} slots (the writers were "
             "slower than the reports came). Report less often (a longer report_every, or "
             "fewer period ends), or give the ring more slots: Logger(..., "
-            f"report_slots={2 * slots})."
+            f"report_slots={2 * slots}).",
+        )
+
+    @classmethod
+    def after_close(cls, lost: int, first: tuple[int, int] | None, fix: str) -> "ReportsLostError":
+        """`first`: the run and step of the first record lost (None: the ring overwrote
+        it before the host took it)."""
+        since = "" if first is None else f", from run {first[0]}'s record at step {first[1]} on"
+        return cls(
+            lost,
+            f"{lost} record(s) reached this Logger after its close() and were not "
+            f"written{since}: it was closed while the training that reports to it "
+            f"(Logger.emit or a reporting wrapper) still ran. {fix}",
         )
 
 

@@ -29,7 +29,8 @@ from .._core._validate import is_int
 from . import _channel, _close_at_exit, _history
 from ._call_checks import check_settings, check_state, check_step, is_traced, scalar_args
 from ._emit_in_graph import InGraphEmit
-from ._emit_receiver import EmitReceiver
+from ._emit_receiver import CLOSE_AFTER_TRAINING, EmitReceiver, LateRecords, WrapperPeriod
+from ._emit_receiver import unreported as unreported_steps
 from ._errors import CallerReports
 from ._errors import NonFiniteError as NonFiniteError
 from ._errors import ReportsLostError as ReportsLostError
@@ -205,8 +206,16 @@ class Logger(AbstractContextManager):
         self._runs = RunWriters(
             run_writers, summary_run, self.tags, edges, packer, self._thread, self._reports
         )
+        # Records that reach this Logger after `close`: the exit handler raises them.
+        self._late = LateRecords(functools.partial(_close_at_exit.register, self))
         self._emitted = EmitReceiver(
-            self.runs, packer, metrics.tags, self._runs.write_run, self._thread, self._reports
+            self.runs,
+            packer,
+            metrics.tags,
+            self._runs.write_run,
+            self._thread,
+            self._reports,
+            self._late,
         )
         self._channel = _channel.Channel(
             self._emitted,
@@ -222,7 +231,7 @@ class Logger(AbstractContextManager):
             compute, metrics.reset_period, send, runs_by_position=self.runs
         )
         self._history_id = _history.layout_id(metrics.config_id, self.include_running)
-        self._wrapper_periods: set[int] = set()  # of the reporting wrappers traced
+        self._wrapper_periods: set[WrapperPeriod] = set()  # of the reporting wrappers traced
         # The reporting wrapper whose reports this Logger takes: its steps are that
         # training's env steps, which another training's would go back over.
         self._wrapper: object | None = None
@@ -257,7 +266,7 @@ class Logger(AbstractContextManager):
         self._reports.surface()
         lost = self._channel.take_lost()
         if lost:
-            raise ReportsLostError(lost, self._channel.slots)
+            raise ReportsLostError.ring_overrun(lost, self._channel.slots)
 
     # ------------------------------------------------------------------ host loop
 
@@ -368,28 +377,48 @@ class Logger(AbstractContextManager):
         Idempotent, and it returns only once everything is written: a `close` called
         while another thread's `close` drains waits for it (that one raises what was
         deferred). Raises what was deferred, after the writers are closed.
+
+        What a reporting wrapper (`jmb.wrap(..., logger=)`, `jm.wrap_step(..., logger=)`)
+        left unreported is said here, with a `RuntimeWarning`: the host sees its steps at
+        period ends only, so the env steps after its last record are counted where the
+        trainer's total is known (Brax's `ppo.train` and `sac.train`: "the last K of the T
+        env steps ... are in no record", with a `report_every` that loses none); their
+        episodes are not known on the host. Elsewhere it says so only when the wrapper
+        wrote no record at all: a loop of your own holds its final state, and
+        `flush` reports the steps after the last record from it.
+
+        Close the Logger after the training that reports to it has returned. Records that
+        reach it after `close` (a training still running) are not written: the training
+        goes on, the first is logged at once (logger "jaxmetrics"), and the next `close`
+        (at the latest, the one at interpreter exit, which then exits with status 1)
+        raises `ReportsLostError` with their number and the step of the first.
         """
         if self._thread.closed:
             self._thread.wait_stopped("close")
+            jax.effects_barrier()
+            self._channel.drain()  # the ring's reports since the first close: late
+            late, first = self._late.take()
+            late += self._channel.take_lost()
+            if late:
+                _close_at_exit.forget(self)
+                raise ReportsLostError.after_close(late, first, CLOSE_AFTER_TRAINING)
             return
         jax.effects_barrier()  # emits still in flight land before the door closes
         self._channel.close()
-        if self._wrapper_periods and self._emitted.calls == 0:
-            periods = " or ".join(f"{p:,}" for p in sorted(self._wrapper_periods))
-            self._reports.notice(
-                f"a reporting wrapper was traced but wrote no record: it reports every "
-                f"{periods} env steps over all envs (report_every, rounded up to whole steps "
-                "of the batch; by default 100 steps of the batch), so a training that ran "
-                "ended before the first period did, and its episodes were not reported. "
-                "Pass a report_every of at most the training's env steps."
-            )
+        for message in unreported_steps(
+            self._wrapper_periods, self._emitted.calls, self._emitted.wrapper_steps
+        ):
+            self._reports.notice(message)
         if not self._thread.stop(self._runs.drain_summary, self._runs.close_writers):
             self._thread.wait_stopped("close")
             return
         # Registered until the writer thread has stopped: if the thread that closes is a
         # daemon and the interpreter exits meanwhile, the exit handler waits for the rest.
+        # A Logger whose reports take the ring stays registered: reports the device writes
+        # there after this close are counted by the exit handler's.
         self._thread.wait_stopped("close")
-        _close_at_exit.forget(self)
+        if not self._channel.in_use:
+            _close_at_exit.forget(self)
         self._surface()
 
     def __exit__(self, *exc: object) -> None:
@@ -440,13 +469,18 @@ class Logger(AbstractContextManager):
         return self._emit(state, step, when, run)
 
     def emit_from_wrapper(
-        self, state: MetricsState, step: Count, when: jax.Array, period: int, source: object
+        self,
+        state: MetricsState,
+        step: Count,
+        when: jax.Array,
+        period: WrapperPeriod,
+        source: object,
     ) -> MetricsState:
         """The reporting wrappers' in-graph emit (`_wrapper_reporter.ReportSink`), not for user
         code: the step is an exact `Count` (env steps pass 2^31 in long runs), and under
-        `vmap` each seed's position on the vmapped axis is its run. `period` (env steps)
-        is kept to say, at `close`, why no record came if none did. `source` is the
-        wrapper's reporter: a Logger takes the reports of one (trace time)."""
+        `vmap` each seed's position on the vmapped axis is its run. `period` is kept to
+        say, at `close`, what the wrapper left unreported. `source` is the wrapper's
+        reporter: a Logger takes the reports of one (trace time)."""
         if self._thread.closed:
             raise RuntimeError(
                 "the Logger given to a reporting wrapper (jmb.wrap, jmp.wrap, "
@@ -465,7 +499,7 @@ class Logger(AbstractContextManager):
                 "writers of a directory of its own."
             )
         state = self._wrapper_emit(state, step, when, jnp.zeros((), jnp.int32))
-        self._wrapper_periods.add(int(period))  # traced: it reports unless never run
+        self._wrapper_periods.add(period)  # traced: it reports unless never run
         return state
 
     # ------------------------------------------------------------------ report history

@@ -25,6 +25,7 @@ from .._core._count import Count
 from .._core._metrics import Metrics
 from .._core._metrics_state import MetricsState
 from .._core._validate import is_int
+from ._emit_receiver import WrapperPeriod
 from ._logger import Logger
 
 
@@ -34,11 +35,17 @@ class ReportSink(Protocol):
     include_running: bool  # the reports have running episodes (gathered with the rest)
 
     def emit_from_wrapper(
-        self, state: MetricsState, step: Count, when: jax.Array, period: int, source: object
+        self,
+        state: MetricsState,
+        step: Count,
+        when: jax.Array,
+        period: WrapperPeriod,
+        source: object,
     ) -> MetricsState:
         """In-graph: reports `state` at `step` where `when`, and resets the period there;
-        `period` is the wrapper's period in env steps over all envs and devices, `source`
-        the wrapper's `Reporter` (a sink takes the reports of one training's wrapper)."""
+        `period` is the wrapper's period (and what the trainer runs, where known),
+        `source` the wrapper's `Reporter` (a sink takes the reports of one training's
+        wrapper)."""
         ...
 
 
@@ -140,15 +147,22 @@ class Reporter:
         return calls
 
     def __call__(
-        self, state: MetricsState, clock: jax.Array, num_envs: int, steps_per_call: int
+        self,
+        state: MetricsState,
+        clock: jax.Array,
+        num_envs: int,
+        steps_per_call: int,
+        planned: int | None = None,
     ) -> tuple[MetricsState, jax.Array]:
         """After one step of the batch: `(state, clock)`, reported and reset where the
-        period ends (in-graph; no host traffic on the other steps)."""
+        period ends (in-graph; no host traffic on the other steps). `planned`: the env
+        steps (over all envs and devices) the trainer runs to its end, where known."""
         clock = jnp.asarray(clock, jnp.int32) + 1
         calls = self.period_calls(num_envs, steps_per_call)
         when = clock >= calls
         clock = jnp.where(when, jnp.zeros_like(clock), clock)
-        period = calls * self.batch_env_steps(num_envs, steps_per_call)
+        batch = self.batch_env_steps(num_envs, steps_per_call)
+        period = WrapperPeriod(calls * batch, batch, planned)
         if (axis_size(self.axis_name) or 1) == 1:
             # One device (Brax's trainers pmap over one): nothing to gather, and no
             # collective in the period-end branch.

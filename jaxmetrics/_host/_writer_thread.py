@@ -74,6 +74,13 @@ class WriterThread:
             yield self._queue.put
 
     @contextlib.contextmanager
+    def entry_if_open(self) -> Iterator[Callable[[Job], None] | None]:
+        """Holds the door and yields `put(job)`, or None for a closed logger (for a caller
+        that must not raise: a report that reaches the host after `close`)."""
+        with self._door:
+            yield None if self._closed else self._queue.put
+
+    @contextlib.contextmanager
     def reserved(self, fn: str) -> Iterator[Callable[[Job], None]]:
         """Waits for a free report slot (back-pressure) and yields `put(job)`, which
         queues the job through the door; the slot is free again once the job has run,

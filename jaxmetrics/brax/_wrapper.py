@@ -115,6 +115,52 @@ def _in_brax_evaluator() -> bool:
     return False
 
 
+def _ppo_env_steps(plan: dict[str, Any]) -> int:
+    """`brax.training.agents.ppo.train`'s env steps to its end: epochs of
+    `num_training_steps_per_epoch` training steps, `max(num_resets_per_eval, 1)` per eval."""
+    return (
+        int(plan["num_evals_after_init"])
+        * max(int(plan["num_resets_per_eval"]), 1)
+        * int(plan["num_training_steps_per_epoch"])
+        * int(plan["env_step_per_training_step"])
+    )
+
+
+def _sac_env_steps(plan: dict[str, Any]) -> int:
+    """`brax.training.agents.sac.train`'s env steps to its end: the replay prefill, then
+    one actor step per training step of each epoch."""
+    return int(plan["num_prefill_env_steps"]) + int(plan["num_evals_after_init"]) * int(
+        plan["num_training_steps_per_epoch"]
+    ) * int(plan["env_steps_per_actor_step"])
+
+
+_BRAX_TRAINERS = {
+    "brax.training.agents.ppo.train": _ppo_env_steps,
+    "brax.training.agents.sac.train": _sac_env_steps,
+}
+
+
+def _brax_training_env_steps() -> int | None:
+    """The env steps Brax's `ppo.train` or `sac.train` runs to its end (Brax's final
+    step), when it is tracing this env's step, else None.
+
+    Read from the trainer's own frame (its plan of epochs, computed before training), as
+    `_in_brax_evaluator` reads the stack: trace time only, and None for a Brax whose
+    trainer keeps its plan under other names. `Logger.close` compares it with the last
+    record's step, to say how many env steps after that record were not reported.
+    """
+    frame = sys._getframe(1)
+    while frame is not None:
+        env_steps = _BRAX_TRAINERS.get(str(frame.f_globals.get("__name__")))
+        if env_steps is not None and frame.f_code.co_name == "train":
+            try:
+                return env_steps(frame.f_locals)
+            except (KeyError, TypeError, ValueError):
+                return None
+        frame = frame.f_back
+    return None
+
+
 def _brax_reset_from(wrapper: Wrapper) -> State | None:
     """The env state Brax's PPO resets `wrapper`'s env from, when it resets the envs
     between epochs (`num_resets_per_eval > 0`), else None.
@@ -363,7 +409,11 @@ class MetricsWrapper(Wrapper):
         if self.reporter is not None:
             if not _in_brax_evaluator():
                 mstate, clock = self.reporter(
-                    mstate, clock, nstate.done.shape[0], self.action_repeat
+                    mstate,
+                    clock,
+                    nstate.done.shape[0],
+                    self.action_repeat,
+                    planned=_brax_training_env_steps(),
                 )
             new_info[CLOCK_KEY] = clock
         if self._state_sharding is not None:

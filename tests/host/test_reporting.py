@@ -402,3 +402,42 @@ def test_nested_vmaps_over_all_of_a_logger_s_seeds_are_told_to_flatten():
             jax.jit(nested)(*stacked)
         with pytest.warns(RuntimeWarning, match="traced but wrote no record"):
             logger.close()
+
+
+@pytest.mark.parametrize("channel", ["io_callback", "ring"])
+def test_a_logger_closed_mid_training_counts_the_later_records_and_the_training_goes_on(
+    channel, caplog
+):
+    # Closed between two calls of the compiled training (as between Brax's epochs), the
+    # io_callback's receiver raised into XLA: `JaxRuntimeError: INTERNAL: CpuCallback
+    # error` ended the training; through the ring the later records were lost unsaid.
+    metrics, memory = _spec(), jm.MemoryWriter()
+    rewards, dones = _episodes(3, NUM_ENVS, 2 * 2 * PERIOD_CALLS)
+    logger = jm.Logger(metrics, [memory], report_channel=channel)
+    wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=PERIOD_CALLS * NUM_ENVS)
+
+    @jax.jit
+    def epoch(carry, r, d):
+        return jax.lax.scan(lambda c, x: (wrapped(c, x)[0], None), carry, (r, d))[0]
+
+    half = 2 * PERIOD_CALLS
+    carry = epoch(wrapped.init(jnp.zeros(()), NUM_ENVS), rewards[:half], dones[:half])
+    logger.close()
+    carry = jax.block_until_ready(epoch(carry, rewards[half:], dones[half:]))
+    report = metrics.to_host(metrics.compute(carry[1]))
+    assert report["Counters/env_steps"] == 4 * PERIOD_CALLS * NUM_ENVS  # it ran to its end
+    assert [r.step for r in memory.records] == [48, 96]
+    with pytest.raises(
+        jm.ReportsLostError,
+        match=r"2 record\(s\) reached this Logger after its close\(\) and were not "
+        r"written, from run 0's record at step 144 on: .* Close the Logger after the "
+        r"training returns",
+    ) as lost:
+        logger.close()
+    assert lost.value.lost == 2
+    (logged,) = [r for r in caplog.records if r.name == "jaxmetrics"]
+    assert "closed while the training still runs: its record of run 0 at step 144" in (
+        logged.getMessage()
+    )
+    logger.close()  # said once
+    assert [r.step for r in memory.records] == [48, 96]

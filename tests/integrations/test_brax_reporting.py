@@ -6,6 +6,7 @@ resets between epochs lose nothing and keep Brax's step; a second training on on
 refused."""
 
 import functools
+import re
 
 import jax
 import numpy as np
@@ -45,7 +46,16 @@ class Recorder(Wrapper):
         return nstate
 
 
-def _wrap(env, metrics, logger, seen, episode_length, action_repeat, randomization_fn):
+def _wrap(
+    env,
+    metrics,
+    logger,
+    seen,
+    episode_length,
+    action_repeat,
+    randomization_fn,
+    report_every: int | None = REPORT_EVERY,
+):
     """`jmb.wrap`'s stack with the Recorder between the auto-reset and the metrics."""
     assert randomization_fn is None
     inner = jmb.MetricsWrapper(
@@ -54,7 +64,7 @@ def _wrap(env, metrics, logger, seen, episode_length, action_repeat, randomizati
         episode_length,
         action_repeat,
         logger=logger,
-        report_every=REPORT_EVERY,
+        report_every=report_every,
     )
     return brax_training.AutoResetWrapper(Recorder(inner, seen))
 
@@ -100,9 +110,12 @@ def _read(logdir) -> dict[str, list[tuple[int, float]]]:
     return {t: [(e.step, e.value) for e in acc.Scalars(t)] for t in acc.Tags()["scalars"]}
 
 
-def _ppo_settings(metrics: jm.Metrics, logger: jm.Logger, seen: dict) -> dict:
+def _ppo_settings(
+    metrics: jm.Metrics, logger: jm.Logger, seen: dict, report_every: int | None = REPORT_EVERY
+) -> dict:
     """Brax's ppo.train on inverted_pendulum, smoke-sized, over DEVICES devices, each
-    training env reporting to `logger` (its steps collected in `seen`)."""
+    training env reporting to `logger` every `report_every` env steps (its steps collected
+    in `seen`)."""
     return dict(
         environment=envs.get_environment("inverted_pendulum", backend="mjx"),
         num_timesteps=TIMESTEPS,
@@ -115,7 +128,9 @@ def _ppo_settings(metrics: jm.Metrics, logger: jm.Logger, seen: dict) -> dict:
         num_evals=2,
         num_eval_envs=4,
         max_devices_per_host=DEVICES,
-        wrap_env_fn=functools.partial(_wrap, metrics=metrics, logger=logger, seen=seen),
+        wrap_env_fn=functools.partial(
+            _wrap, metrics=metrics, logger=logger, seen=seen, report_every=report_every
+        ),
         seed=0,
     )
 
@@ -172,6 +187,46 @@ def test_brax_ppo_train_reports_training_episodes_over_both_devices(tmp_path, br
     assert [s for s, keys in progress if "eval/episode_reward" in keys] == [0, TIMESTEPS]
 
     _check_records(tmp_path, seen)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "report_every, unreported, divisor",
+    [
+        # Brax's default period, 100 steps of the batch (1,600 env steps): one record.
+        (
+            None,
+            r"wrote its last record at env step 1,600: the last 448 of the 2,048 env steps "
+            r"Brax's trainer runs \(to its end\) are in no record, nor are the episodes",
+            "1,024",
+        ),
+        (
+            4096,
+            r"wrote no record: none of the 2,048 env steps Brax's trainer runs \(to its "
+            r"end\) is in one, nor are the episodes",
+            "2,048",
+        ),
+    ],
+)
+def test_brax_ppo_train_s_unreported_tail_is_counted_at_close(
+    tmp_path, brax_ppo_on_this_jax, report_every, unreported, divisor
+):
+    # close() said nothing of the env steps after the last record (ppo.train keeps its
+    # final env state), and, with no record at all, not how many steps were lost.
+    metrics = _metrics()
+    seen: dict[int, list] = {}
+    logger = jm.Logger(metrics, [jm.TensorBoardWriter(tmp_path)])
+    with jmb.default_promotion():
+        brax_ppo.train(**_ppo_settings(metrics, logger, seen, report_every))
+    with pytest.warns(RuntimeWarning) as warned:
+        logger.close()
+    (message,) = [str(w.message) for w in warned]
+    assert re.search(unreported, message), message
+    assert "the steps after the last period end never reach the host" in message
+    assert message.endswith(f"Pass a report_every that divides 2,048, e.g. {divisor}.")
+    assert {len(v) for v in seen.values()} == {TIMESTEPS // NUM_ENVS}  # it ran to its end
+    records = _read(tmp_path).get("Counters/env_steps", [])
+    assert [s for s, _ in records] == ([1600] if report_every is None else [])
 
 
 @pytest.mark.slow
