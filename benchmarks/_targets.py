@@ -93,6 +93,15 @@ def _many_devices(t: Table, sh: Table, tables: Sequence[Table], backend: str) ->
     t.add("no collective in the step loop (sharded state)", f"{left} ops", left == 0)
 
 
+def _distributed(t: Table, dist: Table, tables: Sequence[Table], backend: str) -> None:
+    ratio = next(r[2] for r in dist.rows if r[0].startswith("jaxmetrics"))
+    t.add(
+        f"isolated update under jax.distributed <= {FLOOR_RATIO}x the floor",
+        f"{ratio:.2f}x",
+        ratio <= FLOOR_RATIO,
+    )
+
+
 def _flush(t: Table, fl: Table, tables: Sequence[Table], backend: str) -> None:
     col = {c: k for k, c in enumerate(fl.columns)}
     ms = [r[col["Logger.flush ms"]] for r in fl.rows]
@@ -110,6 +119,7 @@ JUDGES: tuple[tuple[str, Judge], ...] = (
     ("groups", _groups),
     ("end_to_end", _end_to_end),
     ("sharded", _many_devices),
+    ("distributed", _distributed),
     ("flush", _flush),
 )
 """Per table that a target is judged on, the judge that adds its rows, in the order the
