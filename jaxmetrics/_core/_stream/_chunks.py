@@ -24,19 +24,39 @@ from jax.experimental import pallas as pl
 from ._selected import Selected
 
 ONE_PROGRAM = 1024
-COUNTED_HERE = 4096
+"""Entries up to which a row is one program, and per chunk of a chunked row with ranks or of
+group rows (twice that without either): a program's time is mostly latency that grows with
+its entries (one of 4,096 entries 4.4 us on the H100; ten rows of 4,096 5.3 us, in forty
+programs of 1,024 4.0: 0d54162)."""
 PROGRAMS = 128
-LONG_COUNTED_HERE = 16384
-"""Entries up to which the chunks of ungrouped rows with ranks count the row's mask
-themselves past `COUNTED_HERE`, where that makes at most `LONG_PROGRAMS` programs."""
+"""Programs up to which rows of `ONE_PROGRAM` to `LONG_ROW` entries are chunked, each chunk
+counting the row's mask itself: past it more programs ran no faster than one per row (40,
+64, 100 rows of 4,096: 17.4, 18.0, 22.5 us against 14.6, 17.6, 18.8; 0d54162)."""
+LONG_ROW = 4096
+"""Entries past which every row is chunked, at any number of rows: one program per row of
+more entries leaves most of the GPU idle (XLA's kernels, which spread a row over it, were
+faster: fbb3d00); group rows past it are read from the lists instead (`_reached.listed`)."""
 LONG_PROGRAMS = 160
+"""Programs up to which the chunks of ungrouped rows with ranks past `LONG_ROW` entries count
+the row's mask themselves, not by XLA's chunk counts (1.3-1.4 us): ten rows at 8,192 envs
+12.56 -> 12.13 us, at 16,384 in 160 chunks of 1,024 13.69 -> 13.41 (e5d2f9f). Past
+`_reached.LONG` entries such rows are read from the lists, not chunked."""
 LARGER_CHUNKS = 16384
 """Entries from which rows with ranks (and group rows) are folded in chunks of 2,048, not
-1,024: at 16,384 entries half as many programs, each reading the row's mask, and half as
-many chunks to combine cost less; at 12,288 more."""
-ALWAYS_CHUNKED = 2048
+1,024 (16,384 envs 13.02 -> 12.57 us; at 8,192 and 12,288 slower, 11.54 -> 12.07 and
+12.13 -> 12.77: 06328a0), and rows without ranks in chunks of 4,096, not 2,048 (24,576 envs
+10.22 -> 10.08 us, 65,536 15.32 -> 15.00; at 16,384 either, 9.44 / 9.41; at 8,192 2,048
+faster, 8.74 against 8.97: fbf0e6c)."""
+GROUPS_CHUNKED = 2048
+"""Entries past which group rows are chunked at any number of rows, counted by XLA: set where
+64 groups of the full spec at 4,096 envs took 42.4 us with every chunk counting its whole
+row's mask, 26.4 counted by XLA (bf76232). Those batches are now read from the lists
+(`_reached`); in its range since (period statistics of fewer than `_reached.ROWS` group
+rows, 2,049 to 4,096 entries, more than `PROGRAMS` programs) it is not measured."""
 COMBINED_BY_REDUCTIONS = 256
-"""Rows from which `combine` reduces over the chunks (else folds them elementwise)."""
+"""Rows from which `combine` reduces over the chunks, not elementwise in the per-row update:
+with 640 rows of 16 chunks (64 groups, 16,384 envs) the elementwise fold took 9.2 us, the
+two reductions 1.3 + 1.5 (94b826c, e64505b)."""
 
 
 class Chunking(NamedTuple):
@@ -51,35 +71,29 @@ class Chunking(NamedTuple):
 
 def chunking(rows: int, batch: int, grouped: bool, *, ranked: bool) -> Chunking:
     """How each of `rows` rows of `batch` entries is folded; `grouped`: the rows include
-    group rows; `ranked`: with an EMA or a ring. A row past `COUNTED_HERE` entries in chunks
-    of 1,024 entries (2,048 from `LARGER_CHUNKS`) whose partial statistics `fold` combines,
-    counted by XLA: one program per long row leaves most of the GPU idle, and smaller chunks
-    make more programs and partial statistics than the GPU gains from. Ungrouped rows with
-    ranks up to `LONG_COUNTED_HERE` entries count them themselves where that makes at most
+    group rows; `ranked`: with an EMA or a ring. A row past `LONG_ROW` entries in chunks of
+    `ONE_PROGRAM` entries (twice that from `LARGER_CHUNKS`) whose partial statistics `fold`
+    combines, counted by XLA: one program per long row leaves most of the GPU idle, and
+    smaller chunks make more programs and partial statistics than the GPU gains from.
+    Ungrouped rows with ranks count them themselves where that makes at most
     `LONG_PROGRAMS` programs: the row's mask read by each of its chunks costs less than
-    XLA's kernel of chunk counts there, and more past it. Ungrouped rows without ranks take
-    chunks of 2,048 (4,096 past 16,384 entries): they read no chunk counts, and with fewer
-    chunks less is left to combine. A shorter one past `ONE_PROGRAM` in chunks of 1,024
-    where that makes at most `PROGRAMS` programs, each counting the row's mask itself: a
-    program's time is mostly latency that grows with its entries, so ten rows of 4,096 run
-    faster as forty programs. Group rows past `ALWAYS_CHUNKED` entries are chunked at any
-    number of rows, counted by XLA: a chunk without any masked-in entry (most chunks of
-    group rows) costs little, where every program reading its whole row's mask costs more
-    than the XLA reduction. Else one program per row: four hundred programs of ungrouped
-    rows run no faster than a hundred (docs/benchmarks.md, "Scaling" and "Per-group
-    statistics")."""
-    if batch > COUNTED_HERE:
-        if ranked or grouped:
-            size = 1024 if batch < LARGER_CHUNKS else 2048
-        else:
-            size = 2048 if batch <= 16384 else 4096
+    XLA's kernel of chunk counts there. Ungrouped rows without ranks take chunks of 2,048
+    (4,096 from `LARGER_CHUNKS`): they read no chunk counts, and with fewer chunks less is
+    left to combine. A shorter one past `ONE_PROGRAM` in chunks of 1,024 where that makes at
+    most `PROGRAMS` programs, each counting the row's mask itself. Group rows past
+    `GROUPS_CHUNKED` entries are chunked at any number of rows, counted by XLA: a chunk
+    without any masked-in entry (most chunks of group rows) costs little. Else one program
+    per row. The constants' docstrings give the measured rows (docs/benchmarks.md, "Why the
+    fast paths")."""
+    if batch > LONG_ROW:
+        size = ONE_PROGRAM * (1 if ranked or grouped else 2) * (2 if batch >= LARGER_CHUNKS else 1)
         n = -(-batch // size)
-        itself = batch <= LONG_COUNTED_HERE and rows * n <= LONG_PROGRAMS
-        return Chunking(size, n, ranked and not grouped and itself)
+        itself = ranked and not grouped and rows * n <= LONG_PROGRAMS
+        return Chunking(size, n, itself)
     n = -(-batch // ONE_PROGRAM)
     if n > 1 and rows * n <= PROGRAMS:
         return Chunking(ONE_PROGRAM, n, True)
-    if n > 1 and grouped and batch > ALWAYS_CHUNKED:
+    if n > 1 and grouped and batch > GROUPS_CHUNKED:
         return Chunking(ONE_PROGRAM, n, False)
     return Chunking(batch, 1, False)
 
@@ -127,8 +141,8 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
     Written as elementwise, pairwise combinations of the n chunks, not as reductions: XLA
     then computes them in the kernel that updates the per-row state, where reductions over
     the chunk axis were kernels of their own (two more per step). From
-    `COMBINED_BY_REDUCTIONS` rows on (group rows) as reductions: that kernel's fold over 16
-    chunks of hundreds of rows took longer than the two reductions (docs/benchmarks.md)."""
+    `COMBINED_BY_REDUCTIONS` rows on as reductions: that kernel's fold over 16 chunks of
+    hundreds of rows took longer than the two reductions."""
     by_reductions = floats.shape[0] >= COMBINED_BY_REDUCTIONS
 
     def over_chunks(
@@ -168,7 +182,8 @@ def combine(floats: jax.Array, ints: jax.Array) -> tuple[jax.Array, jax.Array]:
 
 def blocking(batch: int) -> tuple[int, int]:
     """The block (the largest power of two up to `batch`) and the number of blocks (1 or
-    2) that cover a row of `batch` entries."""
+    2) that cover a row of `batch` entries. Structural, not tuned: a Triton block's size is
+    a power of two, and two overlapping blocks cover any row with no masked-off tail."""
     block = 1 << (batch.bit_length() - 1)
     return block, -(-batch // block)
 

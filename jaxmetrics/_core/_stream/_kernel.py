@@ -56,13 +56,27 @@ from ._selected import Selected
 from ._update import Batch
 
 MIN_BATCH = 32
+"""Entries from which the kernel serves a batch. Not measured: the kernel's first form
+(cfcf265) served powers of two from 32 entries, a warp's lanes; smaller batches keep XLA's
+kernels (the smallest batch recorded with the kernel is 256 entries, h100_scaling.json)."""
 MAX_BATCH = 65536
+"""Entries up to which the kernel serves a batch: the largest measured faster than XLA's
+kernels (65,536 envs, simple statistics 15.69 -> 15.00 us: fbf0e6c); past it not
+measured."""
+WARPS = 8
+"""Warps per program of rows read from the batch or from their lists in blocks of 1,024:
+at 65,536 envs 4 warps took 6.68 us of our kernel against 5.82 (32f1759)."""
+FEW_WARPS = 4
+"""Warps per program of group rows, and of rows read from their lists in blocks of up to
+512: a program of group rows mostly finds its chunk empty, and with fewer warps more such
+programs run at once (64 groups, 4,096 envs, full spec 23.6 -> 21.5 us, 16,384 46.1 ->
+40.6: 5040c7a); blocks of 512 fold faster with 4 (24,576 envs, our kernel 4.82 -> 4.28 us:
+32f1759)."""
 
 
 def fits(batch: int, dtype: DTypeLike) -> bool:
     """Whether the kernel serves a float32 batch of `batch` entries per row: any size
-    from `MIN_BATCH` to `MAX_BATCH`, the largest measured faster than XLA's kernels
-    (docs/benchmarks.md)."""
+    from `MIN_BATCH` to `MAX_BATCH`."""
     return jnp.dtype(dtype) == jnp.float32 and MIN_BATCH <= batch <= MAX_BATCH
 
 
@@ -148,11 +162,7 @@ def fold(
         pairs=plan.pairs.sizes if plan.pairs else (),
         sources=not batch.grouped and batch.src == tuple(range(rows)),
     )
-    # A program of group rows mostly finds its chunk empty or nearly so: with fewer warps
-    # more such programs run at once (docs/benchmarks.md, "Per-group statistics"). A row
-    # read from its list in blocks of up to 512 entries folds them faster with 4 warps
-    # too; in blocks of 1,024, with 8 (docs/benchmarks.md, "Scaling").
-    warps = 4 if batch.grouped or 0 < plan.gather <= 512 else 8
+    warps = FEW_WARPS if batch.grouped or 0 < plan.gather <= 512 else WARPS
     programs = sum(plan.pairs.sizes) if plan.pairs else 0  # the pairs', past the rows'
     layout = Layout.of(ins, outs)
     out_ops = operands(outs)
@@ -212,7 +222,7 @@ class _Plan(NamedTuple):
         # Ungrouped rows read from the lists have hundreds of entries a step: their
         # histograms are counted by programs of their own, one per (row, histogram row)
         # pair, beside the rows' folds, where in the rows' programs the count ran after
-        # the fold (docs/benchmarks.md, "Scaling"). Group rows have a few entries each.
+        # the fold (docs/benchmarks.md, "Why the fast paths"). Group rows have a few entries each.
         pairs = Pairs.of(hist_rows, batch.src) if hist_rows and not batch.grouped else None
         own = update is not None and n_chunks == 1
         return cls(rows, gather, chunk, n_chunks, ranked, counted_here, pairs, own)

@@ -27,22 +27,29 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-from ._chunks import COUNTED_HERE, counted_input
+from ._chunks import LONG_ROW, counted_input
 from ._selected import Selected
 
 CHUNK = 1024
-"""Entries per program of the listing, up to `SEGMENTS` chunks a row."""
+"""Entries per program of the listing, up to `SEGMENTS` chunks a row. Structural, not tuned
+(any power of two works; chosen as `_chunks.ONE_PROGRAM`, a program's entries there)."""
 SEGMENTS = 16
 """Chunks of a row past which the listing's chunks grow (`chunk`): a row's reader places
-its list's entries among that many segments, `[SEGMENTS, block]` in its registers."""
+its list's entries among that many segments, `[SEGMENTS, block]` in its registers.
+Structural, not tuned (any power of two works; chosen to keep that compare small)."""
 LONG = 16384
 """Entries past which a batch without group rows but with ranks is read from the lists
 (`listed`): from 24,576 entries its chunks' counts and combination cost more than the
-listing; at 16,384 its chunks, counting the row's mask themselves, cost less
-(docs/benchmarks.md, "Scaling")."""
+listing (24,576 envs 13.57 us against 14.22 chunked); at 16,384 its chunks, counting the
+row's mask themselves, cost less (13.11-13.26 against 13.52: bb95847, recorded in
+a5a3332)."""
 ROWS = 64
-"""Group rows without ranks from which a batch of up to `_chunks.COUNTED_HERE` entries
-reads them from the lists (`listed`)."""
+"""Group rows without ranks from which a batch of up to `_chunks.LONG_ROW` entries reads
+them from the lists (`listed`): period statistics at 4,096 envs, lists against the batch,
+1 group 13.5 / 12.2 us, 8 groups 13.5 / 13.1, 64 groups 13.3 / 16.5-17.0 (2b38303)."""
+LIST_WARPS = 4
+"""Warps per program of the listing (`reached`). Not measured: any number works; chosen as
+the fused kernel's for group rows, whose programs likewise find few entries each."""
 
 
 class Reached(NamedTuple):
@@ -56,7 +63,7 @@ class Reached(NamedTuple):
     Without, the entries are the masked-in ones and `listed` holds their values (`by_value`),
     and `flags` (`[S, n]` int32) each chunk's non-finite flags summed: a row, every entry
     its own, reads its values from its list, where at the listed indices it would wait for
-    the list and then gather them (docs/benchmarks.md, "Scaling")."""
+    the list and then gather them (docs/benchmarks.md, "Why the fast paths")."""
 
     listed: jax.Array
     counts: jax.Array
@@ -73,21 +80,22 @@ def listed(rows: int, batch: int, ranked: bool) -> bool:
     """Whether a batch of `batch` entries with `rows` group rows is read from the lists
     (every row of it); `ranked`: with an EMA or a ring. Group rows with ranks always are
     (from the batch, every chunk of a row counts the row's arrivals around it), and so
-    are group rows past `_chunks.COUNTED_HERE` entries (from the batch, their chunks are
+    are group rows past `_chunks.LONG_ROW` entries (from the batch, their chunks are
     counted by XLA first) and ranked batches past `LONG` entries. The period statistics of
     fewer than `ROWS` group rows over a smaller batch fold their chunks from the batch
     at less than the listing's two kernels cost, and ungrouped ones at any size, their
-    chunks needing no counts (docs/benchmarks.md, "Per-group statistics" and
-    "Scaling")."""
+    chunks needing no counts (docs/benchmarks.md, "Why the fast paths")."""
     if rows == 0:
         return ranked and batch > LONG
-    return ranked or batch > COUNTED_HERE or rows >= ROWS
+    return ranked or batch > LONG_ROW or rows >= ROWS
 
 
 def block(batch: int) -> int:
     """The entries a row reads from its list at a time: about one in 64 of the
     batch's, so that a step's arrivals (an episode's last step, at 1 in 100 or fewer of
-    them) take one block; at most a chunk, at least 32."""
+    them) take one block; at most a chunk, at least 32. Structural, not tuned (any power of
+    two works; more blocks when more arrive): the 1/64 is chosen from episode lengths, not
+    from a measured row."""
     return min(chunk(batch), max(32, pl.next_power_of_2(-(-batch // 64))))
 
 
@@ -134,7 +142,7 @@ def _list_kernel(
         if values:
             assert x_ref is not None and flags_ref is not None
             # Only the listed entries' values are loaded: the whole chunk's cost the listing
-            # twice as much (docs/benchmarks.md, "Scaling").
+            # twice as much (docs/benchmarks.md, "Why the fast paths").
             entry = plt.load(x_ref.at[cols], mask=kept, other=0.0)
             flags_ref[pl.ds(row, 1), pl.ds(c, 1)] = jnp.sum(bad, axis=1, keepdims=True)
         else:
@@ -220,7 +228,7 @@ def reached(
         in_specs=[whole(a) for a in ins],
         out_specs=tuple(whole(o) for o in outs),
         interpret=interpret,
-        compiler_params=None if interpret else plt.CompilerParams(num_warps=4),
+        compiler_params=None if interpret else plt.CompilerParams(num_warps=LIST_WARPS),
     )(*ins)
     flags = rest.pop(0) if values else None
     return Reached(listed, counts, flags), rest[0] if rows else counts[:0]

@@ -128,6 +128,8 @@ class EmaGroup:
 
 
 MAX_EMA_HISTORY = 1 << 16
+"""The most newest values an EMA keeps per row for exact merges (`EmaGroup.history`): a bound
+on the ring's memory, not a speed choice (`MIN_MERGED_EMA` says what it costs in exactness)."""
 MIN_MERGED_EMA = -math.expm1(-32 * math.log(2) / MAX_EMA_HISTORY)
 """The smallest EMA coefficient whose merge is exact to 2^-32 of the range: below it the
 `MAX_EMA_HISTORY` newest values kept per worker leave the older EMA a weight above 2^-32
@@ -297,9 +299,9 @@ def take_rows(rows: tuple[int, ...], x: jax.Array) -> jax.Array:
 
 
 INT32_MAX = np.int32(np.iinfo(np.int32).max)
-
-
+"""Where `ema_n` (int32) saturates instead of wrapping."""
 UINT32_MAX = np.uint32(np.iinfo(np.uint32).max)
+"""The newest arrival's key in a ring merge (`_merge`): keys count down from it by age."""
 
 
 def window_ring(g: WindowGroup, w: Ring) -> Ring:
