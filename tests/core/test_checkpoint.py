@@ -21,6 +21,10 @@ from jax.sharding import PartitionSpec as P
 
 import jaxmetrics as jm
 
+# One xdist worker runs the file (--dist loadgroup): its op-by-op updates of restored
+# states compile each op once per process for each layout, which the tests share.
+pytestmark = pytest.mark.xdist_group("test_checkpoint")
+
 E, STEPS, SPLIT = 8, 24, 12
 
 

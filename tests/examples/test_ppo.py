@@ -273,7 +273,10 @@ def test_devices_split_the_envs_and_the_rollout_loop_stays_shard_local(tmp_path)
     # Before the first update both runs roll out the same policy on the same envs: the
     # first record's episode metrics agree; the 2-device rollout loop holds no collective
     # (the metrics fold per shard), while its SGD loop all-reduces the gradients.
-    small = ppo.PPOConfig(num_envs=8, unroll_length=16, total_steps=8 * 16 * 2, episode_length=10)
+    # Brax's cheapest backend to compile: the test compares records and reads collectives.
+    small = ppo.PPOConfig(
+        backend="spring", num_envs=8, unroll_length=16, total_steps=8 * 16 * 2, episode_length=10
+    )
     two = ppo.PPOConfig(**{**small.__dict__, "devices": 2})
     first = {}
     for config in (small, two):

@@ -20,8 +20,9 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 SPI = 8 * 16  # env steps per iteration: --num-envs x --unroll-length
 ITERATIONS = 12
 SEEDS = ("0", "3")
+# Brax's cheapest backend to compile (the runs compare records, whatever the physics).
 FLAGS = [
-    *("--num-envs", "8", "--unroll-length", "16", "--episode-length", "10"),
+    *("--backend", "spring", "--num-envs", "8", "--unroll-length", "16", "--episode-length", "10"),
     *("--steps", str(ITERATIONS * SPI), "--epochs", "2", "--minibatches", "2"),
     *("--seeds", *SEEDS, "--checkpoint-every", "3", "--jsonl", "--no-progress"),
 ]
@@ -147,6 +148,7 @@ def test_a_killed_and_resumed_run_writes_the_records_of_an_uninterrupted_run(tmp
     # A checkpoint is only resumed by the run that wrote it: other settings are named, and
     # refused before any writer could purge a record.
     other = ppo.PPOConfig(
+        backend="spring",
         num_envs=8,
         unroll_length=16,
         episode_length=10,
