@@ -12,8 +12,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 from jax.experimental import pallas as pl
-
-import jaxmetrics as jm
+from test_kernel_lowering import _spec as full_spec
 
 # An input's field and the output field it is updated in place as, where their names
 # differ: the mean is the batch's shift, a ring's `pos` the update's.
@@ -27,26 +26,6 @@ def _out_field(path: str) -> str:
     if ring:
         return f".rings[{ring[1]}]" if ring[2] == "data" else f".update.pos[{ring[1]}]"
     return RENAMED.get(path, path)
-
-
-def _spec(groups: int) -> jm.Metrics:
-    """EMAs, windows, two histograms and counted rows (the episode tallies), over four
-    rows of a `[4, E]` input; each env in group `row 0 * groups`."""
-    stats = {
-        "a": ("mean", "std", jm.ema(0.05), jm.window(7, percentiles=(50,))),
-        "b": ("max", jm.histogram(20, (0.0, 1.0)), jm.window(5)),
-        "c": ("min", jm.histogram(5, (-1.0, 1.0)), jm.ema(0.5)),
-        "d": ("sum", "count"),
-    }
-    terms = {
-        k: jm.Term(lambda x, i: x[i], reduce="mean", stats=v, params={"i": i})
-        for i, (k, v) in enumerate(stats.items())
-    }
-    grouping = None
-    if groups:
-        names = tuple(f"g{k}" for k in range(groups))
-        grouping = jm.groups(lambda x, n: (x[0] * n).astype(jnp.int32), names, n=groups)
-    return jm.Metrics(terms=terms, groups=grouping)
 
 
 @pytest.mark.parametrize(
@@ -80,7 +59,7 @@ def test_kernel_aliases_join_each_field_to_itself(monkeypatch, num_envs, groups,
         return run
 
     monkeypatch.setattr(pl, "pallas_call", spy)
-    metrics = _spec(groups)
+    metrics = full_spec("full", groups)  # EMAs, windows, two histograms, counted rows
     x = jnp.zeros((4, num_envs), jnp.float32)
     state = metrics.init(num_envs)
     if history:
