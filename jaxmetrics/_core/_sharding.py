@@ -39,15 +39,24 @@ def mesh_of(tree: Any) -> jax.sharding.Mesh | None:
     return None
 
 
+def env_axis_names(spec: Any) -> tuple[str, ...]:
+    """The mesh axes that a `PartitionSpec` (or its tuple) splits its first (env) axis over."""
+    first = spec[0] if spec else None
+    if first is None:
+        return ()
+    return (first,) if isinstance(first, str) else tuple(first)
+
+
 def shard_axes(leaf: jax.Array, shards: int) -> tuple[str, ...] | None:
     """In-graph: the mesh axes over which each device holds one of a state's `shards` env
     shards (`leaf`: one of its per-shard leaves, `[S, ...]`), where the trace knows them;
     None where it does not (one shard, or no mesh to read them from).
 
     Under Explicit axes the leaf's type says (`update` traces under the state's mesh).
-    Under Auto axes the types carry no layout: the axes are read from the mesh the caller
-    set (`jax.set_mesh`, as `jmb.wrap(sharding=...)` does), as the one set of its axes whose
-    devices number `shards`; where two sets would do (a 2 x 2 mesh and 2 shards), none is
+    Under Auto axes the types carry no layout: the axes are read from the mesh `update`
+    traces under (the state's own, which a state made by `init(sharding=...)` carries in
+    its type, or the one the caller set with `jax.set_mesh`), as the one set of its axes
+    whose devices number `shards`; where two sets would do (a 2 x 2 mesh and 2 shards), none is
     guessed. The state's shards are then folded per device (`jax.shard_map`), where each
     device's shard can take the fused GPU kernel; without axes they are folded as one
     batch of shards, which XLA keeps local to each device too, with its own kernels.
@@ -58,8 +67,8 @@ def shard_axes(leaf: jax.Array, shards: int) -> tuple[str, ...] | None:
     if mesh.empty:
         return None
     spec = getattr(jax.typeof(leaf).sharding, "spec", None)
-    if spec and spec[0] is not None:
-        names = (spec[0],) if isinstance(spec[0], str) else tuple(spec[0])
+    names = env_axis_names(spec)
+    if names:
         candidates = [names]
     else:
         auto = [
@@ -132,8 +141,7 @@ def shard_count(sharding: Any, num_envs: int) -> int:
             f"{type(sharding).__name__}."
         )
     spec = tuple(sharding.spec)
-    env_axes = spec[0] if spec else None
-    names = () if env_axes is None else (env_axes,) if isinstance(env_axes, str) else env_axes
+    names = env_axis_names(spec)
     shards = math.prod(sharding.mesh.shape[n] for n in names)
     if num_envs % shards:
         raise ValueError(
