@@ -188,5 +188,11 @@ def _process_env(i: int) -> dict[str, str]:
         env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
     else:
         env["JAX_PLATFORMS"] = "cpu"
-        env.pop("XLA_FLAGS", None)  # one CPU device per process
+        env.pop("JAX_NUM_CPU_DEVICES", None)
+        # One CPU device per process; the caller's other flags stay (the test suite's
+        # fast-compile flags among them).
+        flags = env.get("XLA_FLAGS", "").split()
+        env["XLA_FLAGS"] = " ".join(
+            f for f in flags if not f.startswith("--xla_force_host_platform_device_count")
+        )
     return env
