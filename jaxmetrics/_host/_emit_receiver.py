@@ -267,21 +267,9 @@ class EmitReceiver:
         from_wrapper = isinstance(step, Count)
         if from_wrapper:  # env steps, exact
             step = to_int(step)
+        unvmapped = np.ndim(when) == 0
         # io_callback hands over jax Arrays: one copy to numpy here, not a device
         # dispatch per statistic when the writer thread unpacks them.
-        if from_wrapper and np.ndim(when) == 0 and self._runs > 1:
-            self.calls += 1
-            # A wrapper reports under vmap with one run per seed; unvmapped, every record
-            # would go to run 0.
-            self._reports.error(
-                ValueError(
-                    f"a reporting wrapper's Logger has runs={self._runs}, but the wrapper is "
-                    "not vmapped over seeds, so its reports were not written (each would have "
-                    "gone to run 0). Create the Logger with runs=1, or vmap the training over "
-                    f"{self._runs} seeds."
-                )
-            )
-            return
         n = int(np.size(when))
         floats = np.reshape(np.asarray(packed[0]), (n, -1))
         counts = np.reshape(np.asarray(packed[1]), (n, 2, -1))
@@ -292,6 +280,19 @@ class EmitReceiver:
                     self._late.add(int(run[i]), int(step[i]), from_wrapper)
                 return
             self.calls += 1
+            if from_wrapper and unvmapped and self._runs > 1:
+                # A wrapper reports under vmap with one run per seed; unvmapped, every
+                # record would go to run 0. (After close() such records are counted as
+                # lost above, as any other: an error stored then would never be raised.)
+                self._reports.error(
+                    ValueError(
+                        f"a reporting wrapper's Logger has runs={self._runs}, but the wrapper "
+                        "is not vmapped over seeds, so its reports were not written (each "
+                        "would have gone to run 0). Create the Logger with runs=1, or vmap "
+                        f"the training over {self._runs} seeds."
+                    )
+                )
+                return
             queued = False
             for i in np.flatnonzero(when):
                 r, s = int(run[i]), int(step[i])

@@ -373,6 +373,23 @@ def test_misuse_found_at_trace_time_is_named_with_its_fix():
         jax.jit(_run_scan(wrapped, rewards, dones, NUM_ENVS))(rewards, dones)
 
 
+def test_an_unvmapped_wrapper_of_a_closed_logger_of_2_runs_is_counted_lost_not_dropped():
+    # The "not vmapped over seeds" error was stored when the record came, also after close(),
+    # where nothing raised it any more: the records were lost unsaid.
+    metrics, memory = _spec(), [jm.MemoryWriter(), jm.MemoryWriter()]
+    rewards, dones = _episodes(0, NUM_ENVS, 4)
+    logger = jm.Logger(metrics, lambda run: [memory[run]], runs=2)
+    wrapped = jm.wrap_step(_step, metrics, logger=logger, report_every=NUM_ENVS)
+    training = jax.jit(_run_scan(wrapped, rewards, dones, NUM_ENVS)).lower(rewards, dones)
+    training = training.compile()  # traced while the Logger is open
+    with pytest.warns(RuntimeWarning, match="traced but wrote no record"):
+        logger.close()
+    jax.block_until_ready(training(rewards, dones))
+    with pytest.raises(jm.ReportsLostError, match=r"4 record\(s\) reached this Logger after"):
+        logger.close()
+    assert memory[0].records == memory[1].records == []
+
+
 def test_a_wrapper_that_never_reported_says_so_at_close_naming_its_period():
     # ppo.train with report_every past num_timesteps wrote 0 records and close() said
     # nothing.
