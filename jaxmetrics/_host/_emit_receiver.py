@@ -145,8 +145,15 @@ class EnvStepsContinuation:
         self._raw: list[int | None] = [None] * runs
         self._offset = [0] * runs
 
-    def __call__(self, run: int, raw: int, host: HostReport) -> tuple[int, HostReport]:
-        """The record's step and host report, from the wrapper's `raw` step."""
+    def peek(self, run: int, raw: int) -> int:
+        """The step `step` would give, without taking the record in (a record that reached
+        a closed Logger is named by the step it would have had)."""
+        last = self._raw[run]
+        restarted = last if last is not None and raw <= last else 0
+        return self._offset[run] + restarted + raw
+
+    def step(self, run: int, raw: int) -> int:
+        """The record's step, from the wrapper's `raw` step."""
         last = self._raw[run]
         if last is not None and raw <= last:
             self._offset[run] += last
@@ -159,11 +166,15 @@ class EnvStepsContinuation:
                 "between that record and the restart, if anything, is in no record"
             )
         self._raw[run] = raw
+        return self._offset[run] + raw
+
+    def host(self, run: int, host: HostReport) -> HostReport:
+        """The host report of the record `step` last continued, its env steps continued."""
         offset = self._offset[run]
         if offset == 0:
-            return raw, host
+            return host
         assert self._tag is not None, "a reporting wrapper's spec counts env steps"
-        return offset + raw, functools.partial(_shifted, host, self._tag, offset)
+        return functools.partial(_shifted, host, self._tag, offset)
 
 
 class LateRecords:
@@ -277,7 +288,10 @@ class EmitReceiver:
         with self._thread.entry_if_open() as put:
             if put is None:  # closed: counted, and the training goes on
                 for i in np.flatnonzero(when):
-                    self._late.add(int(run[i]), int(step[i]), from_wrapper)
+                    r, s = int(run[i]), int(step[i])
+                    if from_wrapper and 0 <= r < self._runs:
+                        s = self._continuation.peek(r, s)
+                    self._late.add(r, s, from_wrapper)
                 return
             self.calls += 1
             if from_wrapper and unvmapped and self._runs > 1:
@@ -303,7 +317,7 @@ class EmitReceiver:
                     continue
                 host = functools.partial(self._packer.unpack, floats[i], counts[i])
                 if from_wrapper:
-                    s, host = self._continuation(r, s, host)
+                    s, host = self._continuation.step(r, s), self._continuation.host(r, host)
                     self.wrapper_steps[r] = s
                 self._reports.check_later(s, (r,), counts[i])
                 if grace and not queued:

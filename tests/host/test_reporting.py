@@ -302,6 +302,12 @@ def test_a_trainer_reset_of_the_envs_continues_the_steps_and_says_so():
     for r, want in zip(records[2:], second):
         assert r.scalars["Episode_Metrics/ret/count"] == want["count"]
         assert r.scalars["Episode_Metrics/ret"] == pytest.approx(want["mean"], rel=1e-5)
+    # A third stretch after close(), again from a fresh state: its lost records are named
+    # by the steps they would have had (they were named by the wrapper's own count, 48).
+    jax.block_until_ready(run(rewards[:half], dones[:half]))
+    with pytest.raises(jm.ReportsLostError, match=r"2 record\(s\) .* at step 240 on"):
+        logger.close()
+    assert len(memory.records) == 4
 
 
 def test_a_second_wrapper_on_one_logger_is_refused_at_trace_time():
