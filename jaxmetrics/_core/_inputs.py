@@ -55,6 +55,23 @@ def as_array(v: Any, what: str) -> jax.Array:
     return a
 
 
+def done_flags(done: Any, num_envs: int) -> jax.Array:
+    """`update`'s `done` as a bool array `[num_envs]`, or an error naming the fix."""
+    done = as_array(done, "update: done")
+    if done.shape != (num_envs,):
+        raise ValueError(
+            f"update: done must be a bool array of shape (num_envs,)=({num_envs},), got "
+            f"{done.dtype}{list(done.shape)}."
+        )
+    if jnp.issubdtype(done.dtype, jnp.floating):
+        raise TypeError(
+            f"update: done has dtype {done.dtype}; pass a bool array. A float done (0.1, "
+            "NaN, -1) has no single meaning; Brax's State.done is 0.0/1.0: pass "
+            "state.done.astype(bool)."
+        )
+    return done.astype(jnp.bool_) if done.dtype != jnp.bool_ else done
+
+
 def term_values(rows: SpecRows, step_input: Any, num_envs: int) -> jax.Array:
     """Every episode row's value of this step, `[M, num_envs]` in the spec's dtype, or an
     error naming the term and the fix."""

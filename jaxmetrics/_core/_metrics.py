@@ -11,6 +11,7 @@ from . import _checkpoint, _count, _episode, _fresh, _inputs, _report, _rows, _s
 from ._count import Count
 from ._metrics_state import MetricsState
 from ._report import Report, ReportLayout
+from ._shard_fold import fold_shards, shard_counters
 from ._sharding import like, shard_axes, shard_count, state_mesh
 from ._spec import Groups, Logged, MetricSpec, Term, reported
 from ._tags import TagInfo
@@ -312,18 +313,7 @@ class Metrics:
     def _update(self, state: MetricsState, step_input: Any, done: Any) -> MetricsState:
         assert state.running is not None
         num_envs = state.running.steps.shape[-1]
-        done = _inputs.as_array(done, "update: done")
-        if done.shape != (num_envs,):
-            raise ValueError(
-                f"update: done must be a bool array of shape (num_envs,)=({num_envs},), got "
-                f"{done.dtype}{list(done.shape)}."
-            )
-        if jnp.issubdtype(done.dtype, jnp.floating):
-            raise TypeError(
-                f"update: done has dtype {done.dtype}; pass a bool array. A float done (0.1, "
-                "NaN, -1) has no single meaning; Brax's State.done is 0.0/1.0: pass "
-                "state.done.astype(bool)."
-            )
+        done = _inputs.done_flags(done, num_envs)
         shards = state.shard_counts.hi.shape[0]  # type: ignore[union-attr]
         if num_envs == 0:
             raise ValueError(
@@ -336,7 +326,6 @@ class Metrics:
                 "an even split (a state merged from states of different sizes, or of no "
                 "envs). Update a state made by init(num_envs, sharding=...)."
             )
-        done = done.astype(jnp.bool_) if done.dtype != jnp.bool_ else done
         x = like(
             _inputs.term_values(self._rows, step_input, num_envs),
             state.running.steps,
@@ -365,72 +354,28 @@ class Metrics:
             like(i, state.running.steps[0], f"the group indices of {where}")
             for i, where in _inputs.group_ids(self._rows, step_input, num_envs)
         ]
-        # One shard per device, where the trace knows the devices' axes: each device folds
-        # its shard on its own (`shard_map`), which lets a GPU's shard take the fused kernel
-        # (`_stream.add_with_counts(fused=True)`); XLA cannot partition that kernel, so a
-        # batch of shards it partitions takes XLA's kernels.
+        # Each device folds its own shard where the trace knows the devices' axes
+        # (`_shard_fold`), which lets the segment rows take the fused kernel too.
         axes = shard_axes(state.shard_counts.hi, shards)  # type: ignore[union-attr]
-        per_device = shards == 1 or axes is not None
         segments_plan = self._rows.ep_segments
         segmented = segments_plan is not None and segments_plan.serves(
-            num_envs // shards, per_device
+            num_envs // shards, shards == 1 or axes is not None
         )
         rows, segments = _inputs.by_group(self._rows, values, ok, bad, group_ids, segmented)
         # Materialized once: without the barrier XLA recomputes the episode values from
         # the old accumulators inside each reduction, which makes it copy them every step.
         rows, segments = jax.lax.optimization_barrier((rows, segments))
-
-        def by_shard(a: jax.Array) -> jax.Array:
-            # [M, E] -> [S, M, E/S]: shard s gets the s-th block of envs. With the env axis
-            # split over devices in S blocks this is a local view, and everything below
-            # reduces within a shard only.
-            return jnp.moveaxis(a.reshape(a.shape[0], shards, num_envs // shards), 1, 0)
-
-        plan = self._rows.ep_plan
-        assert plan is not None
-
-        # Per shard (`_rows.SHARD_COUNTERS`): env steps, episodes ended, and those whose
-        # group index is out of range, counted in the fold's own reduction.
-        shard_counts = [jnp.ones_like(done), done]
-        if group_ids:
-            out_of_range = [
-                done & ((i < 0) | (i >= len(g.names)))
-                for g, i in zip(self._rows.groupings, group_ids)
-            ]
-            shard_counts.append(jnp.sum(jnp.stack(out_of_range), axis=0, dtype=jnp.int32))
-        narrow = jnp.uint8 if len(self._rows.groupings) < 256 else jnp.int32
-        counted = jnp.stack([c.astype(narrow) for c in shard_counts])
-
-        def fold(st, b, t, e, g):
-            segments = None
-            if g is not None:
-                assert segments_plan is not None  # `g`: the segment sources' batch
-                segments = (segments_plan, g)
-            return _stream.add_with_counts(plan, st, b, t, e, fused=per_device, segments=segments)
-
-        def one_shard(*args):
-            # A vmap of size 1 would still batch the fold's scatters: the shard is folded
-            # as it is.
-            first = jax.tree.map(lambda a: a[0], args)
-            return jax.tree.map(lambda a: a[None], fold(*first))
-
-        args = (
+        assert self._rows.ep_plan is not None
+        finished, counts = fold_shards(
+            self._rows.ep_plan,
+            segments_plan,
             state.finished,
-            rows.arrays(by_shard),
-            by_shard(counted),
             state.shard_counts,
-            None if segments is None else tuple(by_shard(a) for a in segments),
+            rows,
+            shard_counters(done, group_ids, self._rows.groupings),
+            segments,
+            axes,
         )
-        if shards == 1:
-            finished, counts = one_shard(*args)
-        elif axes is not None:
-            # No collective: every input and output is split over `axes` on its shard axis.
-            # The varying-axes check is off: the fused kernel (a pallas_call) has no rule.
-            spec = jax.sharding.PartitionSpec(axes)
-            on_each = jax.shard_map(one_shard, in_specs=spec, out_specs=spec, check_vma=False)
-            finished, counts = on_each(*args)
-        else:
-            finished, counts = jax.vmap(fold)(*args)
         return state._replace(running=running, finished=finished, shard_counts=counts)
 
     def log(self, state: MetricsState, values: Mapping[str, Any]) -> MetricsState:
