@@ -219,7 +219,12 @@ def check_against_unroll(pendulum):
 def check_against_brax(pendulum):
     ours, theirs = pendulum["ours"], pendulum["theirs"]
     np.testing.assert_array_equal(ours["done"], theirs["done"])
-    np.testing.assert_allclose(ours["obs"], theirs["obs"], rtol=1e-6, atol=1e-6)
+    # Two programs compiled apart (ours, and Brax's EpisodeWrapper) may fuse the physics
+    # differently: float32 rounding grows along the unstable pendulum's trajectory to a few
+    # 1e-6 (XLA:CPU's elemental emitters, JAX 0.9.1 and MuJoCo 3.2: 6e-6 on the
+    # observations, 2.5e-5 on the sum of an episode's pole velocities). A wrapper that
+    # changed the trajectory, or dropped a step, moves them by orders of magnitude more.
+    np.testing.assert_allclose(ours["obs"], theirs["obs"], rtol=1e-5, atol=1e-4)
     done = theirs["done"] != 0
     steps, envs_ = np.nonzero(done)  # step-major, then ascending env index: report order
     brax_sums = theirs["episode_metrics"]
@@ -274,7 +279,10 @@ def test_brax_info_keys_are_a_drop_in_for_episode_wrapper(pendulum):
         assert ours[key].dtype == theirs[key].dtype, key
     assert set(ours["episode_metrics"]) == set(theirs["episode_metrics"])
     for key, value in theirs["episode_metrics"].items():
-        np.testing.assert_allclose(ours["episode_metrics"][key], value, rtol=1e-5, err_msg=key)
+        # Sums over the trajectory (check_against_brax says why an absolute bound too).
+        np.testing.assert_allclose(
+            ours["episode_metrics"][key], value, rtol=1e-5, atol=1e-4, err_msg=key
+        )
 
 
 @pytest.mark.slow
