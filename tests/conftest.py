@@ -2,24 +2,45 @@
 bug class these settings catch. Eight CPU devices make the sharding tests real (meshes of 2, 4 and 8)."""
 
 import os
+import subprocess
+import sys
 
 # The suite is compile-bound and its programs are small: LLVM's optimization passes cost
 # more compile time than they save at run time, and XLA:CPU's older elemental emitters
 # compile the suite's programs (Pallas kernels in interpret mode, Brax/MJX rollouts) about
 # a third faster than its MLIR fusion emitters (commit aa0c47b has the times). HLO-level
 # fusion, which the op-count and collective tests read, is not affected. Subprocesses
-# (scripts, notebooks) inherit the flags.
-os.environ["XLA_FLAGS"] = " ".join(
-    filter(
-        None,
-        (
-            os.environ.get("XLA_FLAGS"),
-            "--xla_backend_optimization_level=0",
-            "--xla_llvm_disable_expensive_passes=true",
-            "--xla_cpu_use_fusion_emitters=false",
-        ),
-    )
+# (scripts, notebooks, xdist's workers) inherit the flags.
+FAST_COMPILE_FLAGS = (
+    "--xla_backend_optimization_level=0",
+    "--xla_llvm_disable_expensive_passes=true",
+    # Gone from XLA in JAX 0.12 (the emitters it chose between are gone too).
+    "--xla_cpu_use_fusion_emitters=false",
 )
+_PROBED = "JAXMETRICS_TEST_XLA_FLAGS_PROBED"
+
+
+def _xla_accepts(flags: list[str]) -> bool:
+    """Whether this Python's XLA starts with `flags`: XLA ends the process on a flag it
+    does not know (a fatal log, not an exception), so each probe is a process of its own."""
+    env = {**os.environ, "XLA_FLAGS": " ".join(flags), "JAX_PLATFORMS": "cpu"}
+    probe = [sys.executable, "-c", "import jax; jax.devices()"]
+    return subprocess.run(probe, env=env, capture_output=True).returncode == 0
+
+
+def _known_flags(flags: tuple[str, ...]) -> list[str]:
+    """The flags of `flags` this process's XLA knows (one probe for all, one each if that
+    fails)."""
+    if _xla_accepts(list(flags)):
+        return list(flags)
+    return [flag for flag in flags if _xla_accepts([flag])]
+
+
+if _PROBED not in os.environ:  # xdist's workers inherit the controller's result
+    os.environ["XLA_FLAGS"] = " ".join(
+        filter(None, (os.environ.get("XLA_FLAGS"), *_known_flags(FAST_COMPILE_FLAGS)))
+    )
+    os.environ[_PROBED] = "1"
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

@@ -12,9 +12,12 @@ Two channels carry the same payload (a pytree of small arrays) to the same host 
   callback into a CUDA graph, so a `lax.cond` whose branch holds one is run from the host:
   the predicate is copied back and the GPU waited for on every evaluation, reported or not.
 
-`"auto"` takes the ring where it is tested (CUDA GPUs, the JAX versions in
-`TESTED_JAX`, a driver of CUDA `MIN_CUDA_DRIVER` or later, command buffers not turned off)
-and the `io_callback` elsewhere; `Choice.reason` says why.
+`"auto"` takes the ring on a CUDA GPU with a driver of CUDA `MIN_CUDA_DRIVER` or later and
+command buffers not turned off, where the ring passes its self-test (`self_test`: a report
+sent from a jitted program comes back whole), and the `io_callback` elsewhere;
+`Choice.reason` says why. The ring's primitive is built from JAX internals
+(`_private_jax`), so a JAX release that changes them is caught by the self-test, not by a
+list of tested versions: the ring then falls back, with the reason.
 
 The ring loses a report only when the host falls more than `slots` reports behind the
 device; the reports after it say so (their `seq` skips), and `take_lost` counts them.
@@ -34,13 +37,14 @@ from jax.experimental import io_callback
 from .._core._validate import is_int
 from . import _ring
 
-TESTED_JAX = ((0, 10), (0, 11))
-"""JAX minor versions the ring channel is tested on (0.10.2 on the CPU, 0.11.2 on NVIDIA GPUs)."""
 MIN_CUDA_DRIVER = 12030
 """CUDA 12.3: the first with conditional nodes in CUDA graphs, which XLA's `lax.cond`
 needs to stay inside a graph."""
 CHANNELS = ("auto", "ring", "io_callback")
 DEFAULT_SLOTS = 64
+SELF_TEST_TIMEOUT_S = 120.0
+"""How long the self-test's round trip may take (a compile and one run) before the ring is
+judged not to work."""
 
 _log = logging.getLogger("jaxmetrics")
 
@@ -65,7 +69,6 @@ def choose(requested: str) -> Choice:
     default backend."""
     if requested == "io_callback":
         return Choice("io_callback", "report_channel='io_callback' was asked for")
-    version = tuple(int(p) for p in jax.__version__.split(".")[:2])
     backend = jax.default_backend()
     if requested == "ring":
         if backend not in ("cpu", "gpu") or (backend == "gpu" and _gpu_platform() != "cuda"):
@@ -74,13 +77,16 @@ def choose(requested: str) -> Choice:
                 f"{backend} ({_gpu_platform() if backend == 'gpu' else backend}); use "
                 "report_channel='auto' or 'io_callback'."
             )
+        if (failed := self_test()) is not None:
+            raise RuntimeError(
+                f"report_channel='ring' does not work with JAX {jax.__version__} here: "
+                f"{failed}. Use report_channel='auto' (which falls back to the io_callback) "
+                "or 'io_callback'."
+            )
         return Choice("ring", "report_channel='ring' was asked for")
     if backend != "gpu" or _gpu_platform() != "cuda":
         return Choice("io_callback", f"the default backend is {backend}, not a CUDA GPU")
-    if version not in TESTED_JAX:
-        return Choice("io_callback", f"the ring is not tested on JAX {jax.__version__}")
     try:
-        _private_jax()
         from . import _cuda
 
         driver = _cuda.driver().version()
@@ -96,7 +102,71 @@ def choose(requested: str) -> Choice:
                 return Choice(
                     "io_callback", f"{flag} leaves conditionals or custom calls out of graphs"
                 )
-    return Choice("ring", f"CUDA driver {driver}, JAX {jax.__version__}")
+    if (failed := self_test()) is not None:
+        return Choice(
+            "io_callback", f"the ring fails its self-test on JAX {jax.__version__}: {failed}"
+        )
+    return Choice("ring", f"CUDA driver {driver}, JAX {jax.__version__}: the self-test passed")
+
+
+_SELF_TESTS: dict[str, str | None] = {}
+_SELF_TEST_LOCK = threading.Lock()
+
+
+def self_test() -> str | None:
+    """None when the ring works on this process's default backend, else why not: a report
+    sent through it from a jitted program, under a `lax.cond` as a period end sends it,
+    comes back whole (`_round_trip`). Run once per backend and process, on a thread of its
+    own: the caller may be tracing a program (the first `send`), into which the test's
+    program would be staged instead of run."""
+    backend = jax.default_backend()
+    with _SELF_TEST_LOCK:
+        if backend not in _SELF_TESTS:
+            result: list[str | None] = []
+            thread = threading.Thread(
+                target=lambda: result.append(_round_trip()),
+                name="jaxmetrics-ring-self-test",
+                daemon=True,
+            )
+            thread.start()
+            thread.join(SELF_TEST_TIMEOUT_S)
+            _SELF_TESTS[backend] = (
+                result[0] if result else f"its round trip took over {SELF_TEST_TIMEOUT_S:g} s"
+            )
+        return _SELF_TESTS[backend]
+
+
+def _round_trip() -> str | None:
+    """Sends a known report (words of every bit pattern class: high bits, zero, a float
+    and an int) through a ring of its own and reads it back; None when it came back
+    exactly once and whole, else what went wrong."""
+    sent = (np.array([0xDEADBEEF, 0, 1, 0x80000000], np.uint32), np.float32(-2.5))
+    got: list[tuple[Any, ...]] = []
+    channel = Channel(lambda *_: None, lambda *p: got.append(p), "ring", slots=2)
+    channel._choice = Choice("ring", "the ring's self-test")
+    try:
+
+        def program(words: jax.Array, x: jax.Array, go: jax.Array) -> jax.Array:
+            jax.lax.cond(go, lambda: channel.send(words, x), lambda: None)
+            return x + 1
+
+        jax.block_until_ready(jax.jit(program)(*sent, True))
+        jax.effects_barrier()
+        for _ in range(1000):  # the device's writes reach the host without a wait on it
+            channel.drain()
+            if got:
+                break
+            channel._stop.wait(1e-3)
+    except Exception as e:  # noqa: BLE001 - any failure means: not this channel
+        return f"{type(e).__name__}: {e}"
+    finally:
+        channel.close()
+    if len(got) != 1 or channel.take_lost():
+        return f"{len(got)} reports came back of 1 sent"
+    words, x = got[0]
+    if words.tobytes() != sent[0].tobytes() or np.float32(x) != sent[1]:
+        return f"the report came back as {got[0]}, not {sent}"
+    return None
 
 
 def _gpu_platform() -> str:

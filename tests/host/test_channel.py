@@ -72,6 +72,60 @@ def test_auto_takes_the_io_callback_on_the_cpu_and_says_why():
     assert choice.kind == "io_callback" and "not a CUDA GPU" in choice.reason
 
 
+def test_the_ring_self_test_runs_from_inside_a_trace_and_passes(monkeypatch):
+    """The first `send` is traced inside the user's jit: the self-test's program runs (on a
+    thread of its own), it is not staged into the program being traced."""
+    monkeypatch.setattr(_channel, "_SELF_TESTS", {})
+    seen = []
+
+    @jax.jit
+    def program(x):
+        seen.append(_channel.self_test())
+        return x + 1
+
+    assert int(program(1)) == 2
+    assert seen == [None] and _channel._SELF_TESTS == {"cpu": None}
+
+
+def test_a_ring_whose_jax_internals_are_gone_is_refused_with_the_reason(monkeypatch):
+    monkeypatch.setattr(_channel, "_SELF_TESTS", {})
+    monkeypatch.setattr(_channel, "_SEND", [])
+
+    def gone():
+        raise ImportError("cannot import name 'buffer_callback' from 'jax._src'")
+
+    monkeypatch.setattr(_channel, "_private_jax", gone)
+    with pytest.raises(RuntimeError, match=r"ring' does not work with JAX .*buffer_callback"):
+        jm.Logger(_spec(), [jm.MemoryWriter()], report_channel="ring").report_channel
+
+
+def test_a_ring_that_garbles_reports_fails_its_self_test(monkeypatch):
+    """A round trip that delivers other words (here the host's writer flips them) is a
+    failure, not a pass."""
+    monkeypatch.setattr(_channel, "_SELF_TESTS", {})
+    write = _channel._Site.write_host
+    monkeypatch.setattr(_channel._Site, "write_host", lambda site, w: write(site, ~w))
+    assert "came back as" in _channel.self_test()
+
+
+def test_auto_on_a_cuda_gpu_falls_back_when_the_self_test_fails(monkeypatch):
+    """Where the ring cannot be built (here: a "CUDA GPU" that has no devices), auto
+    takes the io_callback and says why, naming the JAX version."""
+    from jaxmetrics._host import _cuda
+
+    class Driver:
+        def version(self):
+            return 13000
+
+    monkeypatch.setattr(_channel, "_SELF_TESTS", {})
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(_channel, "_gpu_platform", lambda: "cuda")
+    monkeypatch.setattr(_cuda, "driver", Driver)
+    choice = _channel.choose("auto")
+    assert choice.kind == "io_callback"
+    assert f"fails its self-test on JAX {jax.__version__}: RuntimeError: Unknown backend" in choice.reason
+
+
 def test_bad_channel_settings_are_named():
     with pytest.raises(ValueError, match=r"report_channel=\.\.\.\) must be one of"):
         jm.Logger(_spec(), [jm.MemoryWriter()], report_channel="fast")
