@@ -95,8 +95,10 @@ def test_a_ring_whose_jax_internals_are_gone_is_refused_with_the_reason(monkeypa
         raise ImportError("cannot import name 'buffer_callback' from 'jax._src'")
 
     monkeypatch.setattr(_channel, "_private_jax", gone)
+    logger = jm.Logger(_spec(), [jm.MemoryWriter()], report_channel="ring")
     with pytest.raises(RuntimeError, match=r"ring' does not work with JAX .*buffer_callback"):
-        jm.Logger(_spec(), [jm.MemoryWriter()], report_channel="ring").report_channel
+        jax.jit(lambda s: logger.emit(s, 0, True))(logger.metrics.init(0))
+    logger.close()
 
 
 def test_a_ring_that_garbles_reports_fails_its_self_test(monkeypatch):
@@ -123,7 +125,10 @@ def test_auto_on_a_cuda_gpu_falls_back_when_the_self_test_fails(monkeypatch):
     monkeypatch.setattr(_cuda, "driver", Driver)
     choice = _channel.choose("auto")
     assert choice.kind == "io_callback"
-    assert f"fails its self-test on JAX {jax.__version__}: RuntimeError: Unknown backend" in choice.reason
+    assert (
+        f"fails its self-test on JAX {jax.__version__}: RuntimeError: Unknown backend"
+        in choice.reason
+    )
 
 
 def test_bad_channel_settings_are_named():
