@@ -36,7 +36,10 @@ class Metrics:
     """A static metrics spec and the pure functions over its `MetricsState`.
 
     Configuration is validated here; the methods are un-jitted pure functions that work
-    under `jit`, `lax.scan`, `lax.cond` and `vmap`.
+    under `jit`, `lax.scan`, `lax.cond` and `vmap`. Under `jax.grad` (or `jvp`) a state
+    records primal values and carries no gradient: `update` and `log` take what they are
+    given as `jax.lax.stop_gradient` would, so a loss logged inside the function being
+    differentiated leaves its gradient as it was.
 
     Args:
       terms: name -> `Term` (or a bare function, meaning `Term(fn)`), evaluated by
@@ -326,8 +329,11 @@ class Metrics:
                 "an even split (a state merged from states of different sizes, or of no "
                 "envs). Update a state made by init(num_envs, sharding=...)."
             )
+        # A metric observes the step, and a gradient through its statistics means
+        # nothing: the values are taken as constants. (JAX cannot differentiate the
+        # fold's variadic reductions: their JVP fails on operands without a tangent.)
         x = like(
-            _inputs.term_values(self._rows, step_input, num_envs),
+            jax.lax.stop_gradient(_inputs.term_values(self._rows, step_input, num_envs)),
             state.running.steps,
             "the term values",
         )
@@ -401,7 +407,8 @@ class Metrics:
             )
         flat = {}
         for name, v in values.items():
-            a = _inputs.as_array(v, f"log: {name!r}")
+            # Taken as a constant, as `update` takes its term values.
+            a = jax.lax.stop_gradient(_inputs.as_array(v, f"log: {name!r}"))
             if a.size:  # an empty array logs nothing
                 flat[name] = a.reshape(-1).astype(self.dtype)
         if not flat:

@@ -11,6 +11,10 @@ splits them. Nested `vmap`s stack further leading axes the same way.
 
 A wrapper that reports by itself has no run index to pass: built with `runs_by_position`,
 the batch element at position `i` of a (single) vmapped axis is run `i`.
+
+Under `jax.grad` or `jvp` the report is a side effect of the forward pass: it carries the
+state's primal values, and the state leaves the emit without a tangent, as from
+`Metrics.update` and `Metrics.log`.
 """
 
 from collections.abc import Callable
@@ -59,7 +63,10 @@ class InGraphEmit:
         self._levels: dict[int, Callable[..., Any]] = {}
 
     def __call__(self, state: Any, step: jax.Array | Count, when: jax.Array, run: jax.Array) -> Any:
-        return self._level(0)(state, step, when, run)
+        # A host callback has no derivative (JAX refuses to differentiate an io_callback),
+        # so a state that carries tangents (a carry differentiated as a whole) is sent as
+        # its primal values.
+        return self._level(0)(jax.lax.stop_gradient(state), step, when, run)
 
     def _level(self, nd: int) -> Callable[..., Any]:
         if nd not in self._levels:

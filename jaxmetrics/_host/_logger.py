@@ -434,7 +434,9 @@ class Logger(AbstractContextManager):
         Under `vmap` over seeds, pass each seed's run index as `run` (vmapped alongside,
         e.g. `jax.vmap(train)(keys, jnp.arange(runs))`): one callback per period end
         carries every seed, and each goes to its own run's writers. `when` may differ
-        between seeds.
+        between seeds. Inside a function that `jax.grad` differentiates, the report is a
+        side effect of the forward pass: it carries the primal values, and the gradient
+        is the one without the emit (see `Metrics`).
 
         Args:
           state: the state (per seed, under vmap).

@@ -169,3 +169,182 @@ def test_emit_of_a_state_sharded_over_devices(env_sharded):
     (record,) = memory.records
     assert (record.step, record.scalars["Episode_Metrics/speed"]) == (5, 3.5)
     assert logger.emit_calls == 1
+
+
+# A line `w0 + w1 * x` fitted to a batch per step by SGD inside one jitted scan, whose loss
+# function logs its loss and emits (the report is a side effect of the forward pass).
+FIT_STEPS, FIT_PERIOD, FIT_LR, FIT_BATCH = 8, 4, 0.05, 5
+
+
+def _fit_data(seed):
+    """Per step, a batch of inputs and targets (float32)."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-2.0, 2.0, (FIT_STEPS, FIT_BATCH)).astype(np.float32)
+    y = (0.5 + 1.5 * x + rng.normal(0.0, 0.1, x.shape)).astype(np.float32)
+    return x, y
+
+
+def _fit_reference(x, y):
+    """Hand-unrolled float64 SGD: each step's loss and gradient."""
+    w = np.zeros(2)
+    losses, grads = [], []
+    for xi, yi in zip(x.astype(np.float64), y.astype(np.float64)):
+        r = w[0] + w[1] * xi - yi
+        losses.append(np.mean(r**2))
+        grads.append(np.array([np.mean(2 * r), np.mean(2 * r * xi)]))
+        w = w - FIT_LR * grads[-1]
+    return np.array(losses), np.array(grads)
+
+
+def _fit(loss_fn, value_and_grad, init):
+    """SGD over `loss_fn(w, carry, x, y, i, *args) -> (loss, carry)` as a function of the
+    data (and `args`: the run), which returns each step's gradient."""
+
+    def fit(x, y, *args):
+        def body(carry, inputs):
+            w, aux = carry
+            x_i, y_i, i = inputs
+            if value_and_grad:
+                (_, aux), g = jax.value_and_grad(loss_fn, has_aux=True)(w, aux, x_i, y_i, i, *args)
+            else:
+                g, aux = jax.grad(loss_fn, has_aux=True)(w, aux, x_i, y_i, i, *args)
+            return (w - FIT_LR * g, aux), g
+
+        steps = jnp.arange(FIT_STEPS)
+        return jax.lax.scan(body, (jnp.zeros(2, jnp.float32), init), (x, y, steps))[1]
+
+    return fit
+
+
+def _mse(w, x, y):
+    return jnp.mean((w[0] + w[1] * x - y) ** 2)
+
+
+@pytest.mark.parametrize("channel", ["io_callback", "ring"])
+@pytest.mark.parametrize("how", ["grad", "value_and_grad", "vmap"])
+def test_emit_inside_grad_reports_the_primal_loss_and_leaves_the_gradient_unchanged(channel, how):
+    # The loss function logged its (differentiated) loss and emitted: under jit the log
+    # failed with "TypeError ... ad_util.Zero", eagerly the emit with "IO callbacks do not
+    # support JVP".
+    metrics = jm.Metrics(logged=["loss"])
+    runs = 2 if how == "vmap" else 1
+    memories = [jm.MemoryWriter() for _ in range(runs)]
+    logger = jm.Logger(metrics, lambda run: [memories[run]], runs=runs, report_channel=channel)
+
+    def logged_loss(w, state, x, y, i, run=None):
+        loss = _mse(w, x, y)
+        state = metrics.log(state, {"loss": loss})
+        return loss, logger.emit(state, i, i % FIT_PERIOD == FIT_PERIOD - 1, run=run)
+
+    def plain_loss(w, carry, x, y, i, run=None):
+        return _mse(w, x, y), carry
+
+    data = [_fit_data(seed) for seed in range(runs)]
+    vg = how != "grad"
+    fit = _fit(logged_loss, vg, metrics.init(1))
+    plain = _fit(plain_loss, vg, jnp.zeros((), jnp.float32))
+    if how == "vmap":
+        x, y = (jnp.stack([d[k] for d in data]) for k in (0, 1))
+        grads = jax.jit(jax.vmap(fit))(x, y, jnp.arange(runs))
+        want_grads = jax.jit(jax.vmap(plain))(x, y, jnp.arange(runs))
+    else:
+        grads = jax.jit(fit)(*data[0])[None]
+        want_grads = jax.jit(plain)(*data[0])[None]
+    logger.close()
+
+    # The gradient is the one of the same loss without the logging, to the bit.
+    np.testing.assert_array_equal(grads, want_grads)
+    ends = list(range(FIT_PERIOD - 1, FIT_STEPS, FIT_PERIOD))
+    for run, memory in enumerate(memories):
+        losses, ref_grads = _fit_reference(*data[run])
+        np.testing.assert_allclose(grads[run], ref_grads, rtol=1e-5, atol=1e-6)
+        # Each record holds the mean of the primal losses of its period.
+        want = [losses[e - FIT_PERIOD + 1 : e + 1].mean() for e in ends]
+        got = [
+            (r.step, r.scalars["Train/loss"], r.scalars["Train/loss/count"]) for r in memory.records
+        ]
+        assert [(s, c) for s, _, c in got] == [(e, FIT_PERIOD) for e in ends]
+        np.testing.assert_allclose([v for _, v, _ in got], want, rtol=1e-5)
+
+
+@pytest.mark.parametrize("channel", ["io_callback", "ring"])
+def test_grad_through_a_scan_that_updates_logs_and_emits_reports_the_primal_values(channel):
+    # A differentiable rollout (Brax's APG differentiates through its env steps): each
+    # step's rewards go into an episode term and their mean into a logged value, inside
+    # the scan that jax.value_and_grad differentiates.
+    metrics = jm.Metrics(
+        terms={"reward": jm.Term(lambda r: r, reduce="sum", stats=("mean", "count"))},
+        logged=["step_reward"],
+    )
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [memory], report_channel=channel)
+    rng = np.random.default_rng(7)
+    a, b = rng.uniform(-1.0, 1.0, (2, STEPS, NUM_ENVS)).astype(np.float32)
+
+    def rollout(theta, metrics_on):
+        def body(carry, inputs):
+            total, state = carry
+            a_i, b_i, i = inputs
+            reward = -((theta * a_i - b_i) ** 2)
+            if metrics_on:
+                state = metrics.update(state, reward, jnp.ones(NUM_ENVS, jnp.bool_))
+                state = metrics.log(state, {"step_reward": jnp.mean(reward)})
+                state = logger.emit(state, i, i % PERIOD == PERIOD - 1)
+            return (total + jnp.mean(reward), state), None
+
+        init = (jnp.zeros((), jnp.float32), metrics.init(NUM_ENVS))
+        return jax.lax.scan(body, init, (a, b, jnp.arange(STEPS)))[0][0]
+
+    theta = jnp.float32(0.7)
+    value, grad = jax.jit(jax.value_and_grad(lambda t: rollout(t, True)))(theta)
+    want_value, want_grad = jax.jit(jax.value_and_grad(lambda t: rollout(t, False)))(theta)
+    logger.close()
+    np.testing.assert_array_equal([value, grad], [want_value, want_grad])
+
+    # Reference: float64, the derivative by hand.
+    a64, b64, t64 = a.astype(np.float64), b.astype(np.float64), np.float64(np.float32(0.7))
+    rewards = -((t64 * a64 - b64) ** 2)
+    np.testing.assert_allclose(
+        grad, np.sum(np.mean(-2 * a64 * (t64 * a64 - b64), axis=1)), rtol=1e-5
+    )
+    ends = list(range(PERIOD - 1, STEPS, PERIOD))
+    assert [r.step for r in memory.records] == ends
+    for record, e in zip(memory.records, ends):
+        period = rewards[e - PERIOD + 1 : e + 1]
+        assert record.scalars["Episode_Metrics/reward/count"] == PERIOD * NUM_ENVS
+        np.testing.assert_allclose(
+            record.scalars["Episode_Metrics/reward"], period.mean(), rtol=1e-5
+        )
+        np.testing.assert_allclose(record.scalars["Train/step_reward"], period.mean(), rtol=1e-5)
+
+
+@pytest.mark.parametrize("channel", ["io_callback", "ring"])
+def test_emit_of_a_state_that_carries_a_tangent_reports_its_primal_values(channel):
+    # A training carry differentiated as a whole (jax.jvp over it) hands emit a state whose
+    # float arrays carry tangents: the io_callback refused it ("IO callbacks do not
+    # support JVP").
+    metrics = jm.Metrics(logged=["x"])
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [memory], report_channel=channel)
+    values = np.array([1.5, -2.0, 4.25], np.float32)
+    state = jax.jit(lambda: metrics.log(metrics.init(1), {"x": jnp.asarray(values)}))()
+
+    def tangent(a):
+        if jnp.issubdtype(a.dtype, jnp.floating):
+            return jnp.ones_like(a)
+        return np.zeros(a.shape, jax.dtypes.float0)
+
+    def step(s, t):
+        return jax.jvp(lambda s: logger.emit(s, 3, jnp.bool_(True)), (s,), (t,))[0]
+
+    out = jax.jit(step)(state, jax.tree.map(tangent, state))
+    logger.close()
+    (record,) = memory.records
+    assert record.step == 3 and record.scalars["Train/x/count"] == 3
+    np.testing.assert_allclose(
+        record.scalars["Train/x"], np.mean(values, dtype=np.float64), rtol=1e-6
+    )
+    assert record.scalars["Train/x/max"] == 4.25
+    # The period was reset, as an emit outside jvp resets it.
+    reset = metrics.reset_period(state)
+    jax.tree.map(np.testing.assert_array_equal, out, reset)
