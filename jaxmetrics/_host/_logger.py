@@ -239,6 +239,9 @@ class Logger(AbstractContextManager):
         self._timer_tags: set[str] = set()
         self._timers = Timers()
         self._last_step: int | None = None  # the last host-int step flushed (all runs)
+        # Set by a `close` on the writer thread, which can neither wait nor raise: the
+        # next `close` raises what was deferred.
+        self._closed_by_writer = False
         self.report_nbytes = 0
         self._runs.open(self.tags, self.summary_tags)
         self._thread.start()
@@ -392,34 +395,66 @@ class Logger(AbstractContextManager):
         goes on, the first is logged at once (logger "jaxmetrics"), and the next `close`
         (at the latest, the one at interpreter exit, which then exits with status 1)
         raises `ReportsLostError` with their number and the step of the first.
+
+        A writer may call `close` from its `write` or `close` (a writer that decides to
+        stop): on the writer thread, which cannot wait for itself, it closes the door and
+        returns at once, raising nothing. The records queued before it are still written
+        and then the writers closed, once that writer call returns; reports that come
+        later are counted as above, and the next `close` on another thread (the `with`
+        block's, or the one at interpreter exit) waits for the writer thread and raises
+        what was deferred.
         """
-        if self._thread.closed:
-            self._thread.wait_stopped("close")
-            jax.effects_barrier()
-            self._channel.drain()  # the ring's reports since the first close: late
-            late, first = self._late.take()
-            late += self._channel.take_lost()
-            if late:
-                _close_at_exit.forget(self)
-                raise ReportsLostError.after_close(late, first, CLOSE_AFTER_TRAINING)
-            return
-        jax.effects_barrier()  # emits still in flight land before the door closes
-        self._channel.close()
-        for message in unreported_steps(
-            self._wrapper_periods, self._emitted.calls, self._emitted.wrapper_steps
-        ):
-            self._reports.notice(message)
-        if not self._thread.stop(self._runs.drain_summary, self._runs.close_writers):
-            self._thread.wait_stopped("close")
-            return
-        # Registered until the writer thread has stopped: if the thread that closes is a
-        # daemon and the interpreter exits meanwhile, the exit handler waits for the rest.
-        # A Logger whose reports take the ring stays registered: reports the device writes
-        # there after this close are counted by the exit handler's.
+        on_writer = self._thread.is_current()
+        if not self._thread.closed:
+            if not on_writer:
+                # Emits still in flight land before the door closes. (On the writer
+                # thread, the barrier would hold it until the training that reports has
+                # ended, writing nothing meanwhile: the writer asked to stop now.)
+                jax.effects_barrier()
+            self._channel.close()
+            for message in unreported_steps(
+                self._wrapper_periods, self._emitted.calls, self._emitted.wrapper_steps
+            ):
+                self._reports.notice(message)
+            if self._thread.stop(self._runs.drain_summary, self._runs.close_writers):
+                if on_writer:
+                    # The thread writes what is queued and closes the writers once this
+                    # writer call returns; the Logger stays registered for the exit
+                    # handler until a close on another thread has raised what is deferred.
+                    self._closed_by_writer = True
+                    return
+                # Registered until the writer thread has stopped: if the thread that
+                # closes is a daemon and the interpreter exits meanwhile, the exit handler
+                # waits for the rest. A Logger whose reports take the ring stays
+                # registered: reports the device writes there after this close are
+                # counted by the exit handler's.
+                self._thread.wait_stopped("close")
+                if not self._channel.in_use:
+                    _close_at_exit.forget(self)
+                self._surface()
+                return
+        # Closed before, or by another thread's close meanwhile.
+        if not on_writer:
+            self._close_again()
+
+    def _close_again(self) -> None:
+        """`close` of a closed Logger: waits for the writer thread, raises what a writer's
+        close deferred, then the records that reached the Logger after its close."""
         self._thread.wait_stopped("close")
-        if not self._channel.in_use:
+        if self._closed_by_writer:
+            self._closed_by_writer = False
+            # Before the late records are taken: if this raises, they stay counted, and
+            # the Logger registered for the exit handler.
+            self._surface()
+            if not self._channel.in_use:
+                _close_at_exit.forget(self)
+        jax.effects_barrier()
+        self._channel.drain()  # the ring's reports since the first close: late
+        late, first = self._late.take()
+        late += self._channel.take_lost()
+        if late:
             _close_at_exit.forget(self)
-        self._surface()
+            raise ReportsLostError.after_close(late, first, CLOSE_AFTER_TRAINING)
 
     def __exit__(self, *exc: object) -> None:
         self.close()

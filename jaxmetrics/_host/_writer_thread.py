@@ -61,6 +61,10 @@ class WriterThread:
     def is_alive(self) -> bool:
         return self._thread.is_alive()
 
+    def is_current(self) -> bool:
+        """Whether the caller runs on this thread (a writer's call)."""
+        return threading.current_thread() is self._thread
+
     def check_open(self, fn: str) -> None:
         """Raises for a closed logger, naming the `Logger` method `fn`."""
         if self._closed:

@@ -14,6 +14,7 @@ import time
 import jax
 import jax.numpy as jnp
 import pytest
+from jax.experimental import io_callback
 from tensorboard.backend.event_processing import event_accumulator as ea
 
 import jaxmetrics as jm
@@ -135,6 +136,120 @@ def test_a_close_racing_another_close_returns_only_once_everything_is_written():
     logger.close()
     assert slow.written == [0, 1, 2, 3, 4]
     other.join()
+
+
+def _within(seconds, fn):
+    """`fn()`'s result, or its exception; fails the test if it has not returned within
+    `seconds` (a deadlock)."""
+    out = []
+
+    def run():
+        try:
+            out.append((True, fn()))
+        except BaseException as e:  # noqa: BLE001 (raised on the test's thread)
+            out.append((False, e))
+
+    t = threading.Thread(target=run, daemon=True)
+    t.start()
+    t.join(seconds)
+    assert out, f"{fn} did not return within {seconds} s"
+    ok, value = out[0]
+    if not ok:
+        raise value
+    return value
+
+
+class _ClosesItsLogger(jm.MemoryWriter):
+    """A writer that decides to stop: writing `step`, it closes its Logger (from the writer
+    thread), and again when it is closed itself. It writes once `gate` is set."""
+
+    def __init__(self, step):
+        super().__init__()
+        self.step, self.logger, self.gate = step, None, threading.Event()
+        self.closed_logger, self.close_raised, self.closes = threading.Event(), [], 0
+
+    def write(self, record):
+        self.gate.wait()
+        super().write(record)
+        if record.step == self.step:
+            self._close_logger()
+            self.closed_logger.set()
+
+    def close(self):
+        self.closes += 1
+        self._close_logger()
+
+    def _close_logger(self):
+        try:
+            self.logger.close()
+        except BaseException as e:  # noqa: BLE001 (the test asserts there is none)
+            self.close_raised.append(e)
+
+
+def test_close_from_a_writers_write_returns_and_the_records_queued_before_are_written():
+    # close() in a writer's write raised "RuntimeError: cannot join current thread" (the
+    # writer thread waited for itself), and the next close() raised nothing, not even
+    # the other writer's failure.
+    stopping, failing = _ClosesItsLogger(step=1), _Failing("f", {3})
+    logger = jm.Logger(METRICS, [stopping, failing])
+    stopping.logger = logger
+    for step in range(5):  # all queued before the writer closes the Logger
+        logger.flush(_state(float(step)), step)
+    stopping.gate.set()
+    assert stopping.closed_logger.wait(30), "close() from the writer thread did not return"
+    assert stopping.close_raised == []
+    assert logger.closed
+    with pytest.raises(RuntimeError, match="the logger is closed"):
+        logger.flush(_state(5.0), 5)
+    # The next close waits for the records queued before and raises what was kept.
+    with pytest.raises(jm.WriterError) as err:
+        _within(30, logger.close)
+    assert [str(f).split(":")[0] for f in err.value.failures] == [
+        "writer _Failing('f') of run 0 failed at step 3"
+    ]
+    assert [(r.step, r.scalars["Train/x"]) for r in stopping.records] == [
+        (s, float(s)) for s in range(5)
+    ]
+    assert failing.written == [0, 1, 2, 4]
+    assert stopping.closes == 1 and stopping.close_raised == []
+    assert _within(30, logger.close) is None  # nothing left to raise
+
+
+@pytest.mark.parametrize("channel", ["io_callback", "ring"])
+def test_close_from_a_writer_mid_training_counts_every_later_emit_as_lost(channel):
+    # A writer stops the Logger while the jitted training still emits: the records queued
+    # before its close are written, and each later one is counted, once.
+    steps, stop_at = 20, 2
+    stopping = _ClosesItsLogger(step=stop_at)
+    stopping.gate.set()
+    logger = jm.Logger(METRICS, [stopping], report_channel=channel)
+    stopping.logger = logger
+
+    def wait_for_the_writers_close():
+        stopping.closed_logger.wait(30)
+
+    def train(state):
+        def body(state, i):
+            # The training goes on only once the writer has closed the Logger (its
+            # reports of steps 0 to stop_at are sent before).
+            jax.lax.cond(
+                i == stop_at + 1,
+                lambda: io_callback(wait_for_the_writers_close, None, ordered=True),
+                lambda: None,
+            )
+            state = METRICS.log(state, {"x": i.astype(jnp.float32)})
+            return logger.emit(state, i, jnp.bool_(True)), None
+
+        return jax.lax.scan(body, state, jnp.arange(steps))[0]
+
+    jax.block_until_ready(_within(60, lambda: jax.jit(train)(METRICS.init(0))))
+    assert stopping.closed_logger.is_set() and stopping.close_raised == []
+    with pytest.raises(jm.ReportsLostError, match=f"from run 0's record at step {stop_at + 1} on"):
+        _within(30, logger.close)
+    written = [(r.step, r.scalars["Train/x"]) for r in stopping.records]
+    assert written == [(s, float(s)) for s in range(stop_at + 1)]
+    assert _within(30, logger.close) is None
+    assert stopping.closes == 1 and stopping.close_raised == []
 
 
 def test_a_daemon_thread_closing_at_exit_still_gets_every_record_written(tmp_path):
