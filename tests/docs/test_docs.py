@@ -60,7 +60,7 @@ def test_the_readme_test_command_is_what_ci_runs():
     assert ci[-1] == tests
     assert tests == (
         'pip install -e ".[test]" && ruff check . && ruff format --check . && pyright && '
-        "mkdocs build --strict && python -m pytest -q && .ci/floors"
+        "mkdocs build --strict && python -m pytest -q && .ci/floors && .ci/newest"
     )
     assert demo == 'pip install -e ".[train]" && python -m jaxmetrics.examples.ppo'
     assert "`python -m jaxmetrics.examples.brax_ppo`" in README.read_text()
