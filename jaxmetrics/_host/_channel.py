@@ -26,6 +26,7 @@ device; the reports after it say so (their `seq` skips), and `take_lost` counts 
 import logging
 import os
 import threading
+import weakref
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -359,6 +360,27 @@ def check_settings(requested: Any, slots: Any) -> None:
         raise ValueError(f"Logger(report_slots=...) must be an int in [1, 65536], got {slots!r}.")
 
 
+class _WeakCallback:
+    """The `io_callback`'s host function as a compiled program holds it: weakly. JAX may keep
+    a traced program (and so its callback) in its caches after the program itself is gone
+    (JAX 0.12 does); a strong reference would keep the Logger, its writers and its spec
+    alive for the process's life, one more per Logger of a sweep."""
+
+    def __init__(self, callback: Callable[..., None]):
+        self._callback = weakref.ref(callback)
+
+    def __call__(self, *payload: Any) -> None:
+        callback = self._callback()
+        if callback is None:
+            _log.error(
+                "jaxmetrics: a report reached a Logger that no longer exists (it was garbage "
+                "collected while a compiled program that reports to it was kept); the report "
+                "is dropped. Keep the Logger for as long as its programs run, and close it."
+            )
+            return
+        callback(*payload)
+
+
 class Channel:
     """`send(*payload)` in-graph hands `payload` (a tuple of arrays, or pytrees of them)
     to the host, as arrays, in order.
@@ -388,6 +410,7 @@ class Channel:
         poll_interval_s: float = 1e-3,
     ):
         self._callback, self._deliver, self._requested = callback, deliver, requested
+        self._weak_callback = _WeakCallback(callback)
         self._on_error = on_error
         self.slots, self.poll_interval_s = slots, poll_interval_s
         self._choice: Choice | None = None
@@ -415,7 +438,7 @@ class Channel:
         """In-graph: sends `payload` to the host (unordered with the program's other
         effects; ordered with this channel's other reports)."""
         if self.choice.kind == "io_callback":
-            io_callback(self._callback, None, *payload, ordered=True)
+            io_callback(self._weak_callback, None, *payload, ordered=True)
             return
         leaves, treedef = jax.tree.flatten(payload)
         layout = (treedef, tuple(_Leaf.of(x) for x in leaves))

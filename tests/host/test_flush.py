@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+import weakref
 
 import jax
 import jax.numpy as jnp
@@ -569,3 +570,26 @@ def test_an_unclosed_logger_is_drained_at_interpreter_exit(tmp_path):
     assert out.returncode == 0 and out.stdout.strip() == "EXITING", out.stderr
     with open(tmp_path / "m.jsonl") as f:
         assert [json.loads(line)["scalars"]["Train/x"] for line in f] == [0.0, 1.0, 2.0]
+
+
+def _compiled_emit(logger, state):
+    return jax.jit(lambda s: logger.emit(s, 1, jnp.bool_(True))).lower(state).compile()
+
+
+def test_a_report_to_a_logger_that_was_collected_is_dropped_loudly(caplog):
+    """A compiled program holds its Logger's callback weakly (JAX may cache the traced
+    program for the process's life): a report it makes after the Logger was collected is
+    dropped with an error that says why, not written to a half-gone Logger."""
+    metrics = _log_metrics()
+    logger = jm.Logger(metrics, [jm.MemoryWriter()], report_channel="io_callback")
+    state = metrics.log(metrics.init(1), {"x": jnp.float32(1.0)})
+    compiled = _compiled_emit(logger, state)
+    alive = weakref.ref(logger)
+    logger.close()
+    del logger
+    gc.collect()
+    assert alive() is None
+    with caplog.at_level("ERROR", logger="jaxmetrics"):
+        jax.block_until_ready(compiled(state))
+        jax.effects_barrier()
+    assert "reached a Logger that no longer exists" in caplog.text

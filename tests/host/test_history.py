@@ -184,6 +184,9 @@ for name, fn in (("history", with_history), ("emit", with_emit)):
     print(name, written, events.count("/jax/compilation_cache/cache_hits"))
     if name == "history":
         logger.write_history(compiled(*args[name])[1])
+    else:
+        compiled(*args[name])  # a program served from the cache still reports
+        jax.effects_barrier()
 logger.close()
 print("records", [(r.step, r.scalars["Train/x"]) for r in memory.records])
 """
@@ -204,8 +207,11 @@ def test_history_program_is_served_by_the_persistent_compilation_cache(tmp_path)
     lines = out.stdout.split("\n")
     name, written, hits = lines[0].split()
     assert (name, hits) == ("history", "1") and int(written) > 0  # stored, then served
-    assert lines[1] == "emit 0 0"  # the io_callback program is neither
-    assert lines[2] == "records [(1, 0.5), (3, 2.5)]"
+    # The io_callback's program: JAX 0.10 and 0.11 neither store nor serve it, 0.12 does
+    # both; either way a stored program is served, and it reports what it should.
+    name, written, hits = lines[1].split()
+    assert name == "emit" and written == hits and written in ("0", "1")
+    assert lines[2] == "records [(1, 0.5), (3, 2.5), (1, 0.5), (3, 2.5)]"
 
 
 def test_an_overflowing_history_writes_what_it_holds_and_raises_with_the_capacity_needed():
