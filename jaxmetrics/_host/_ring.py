@@ -6,7 +6,8 @@ Layout of one ring, in little-endian uint32 words:
     [1:4]          padding (the slots start 16 bytes in)
     slot s         at 4 + s * (n + 2): `head`, the n payload words, `tail`
 
-Report `seq` (1, 2, ...) goes to slot `(seq - 1) % slots`. The writer bumps the counter,
+Report `seq` (1, 2, ...; 32-bit words, wrapping at 2^32) goes to slot
+`((seq - 1) mod 2^32) % slots`. The writer bumps the counter,
 then writes the slot's `head` = seq, the payload, and `tail` = seq, in that order, each
 step visible before the next (a system-scope fence on the GPU, plain stores in order on the
 host). The reader takes a slot's `tail`, then the payload, then `head`: the payload is
@@ -26,6 +27,7 @@ import numpy as np
 
 HEADER_WORDS = 4  # the counter, then padding to 16 bytes
 _WORD = 4
+_MASK = 2**32 - 1  # the device's words are 32 bits; seqs wrap at 2^32
 
 
 def ring_words(payload_words: int, slots: int) -> int:
@@ -61,7 +63,11 @@ class Ring:
         return ctypes.c_uint32.from_address(self.address).value
 
     def _slot(self, seq: int) -> int:
-        return self.address + HEADER_WORDS * _WORD + ((seq - 1) % self.slots) * self._stride
+        # As the device computes it, from its 32-bit seq: the same slot for any `seq` and
+        # `seq` + k * 2^32, whatever the number of slots.
+        return (
+            self.address + HEADER_WORDS * _WORD + (((seq - 1) & _MASK) % self.slots) * self._stride
+        )
 
     def take(self, last: int) -> Taken:
         """The whole reports after `last` (the newest `seq` taken so far).
@@ -69,8 +75,11 @@ class Ring:
         A report still being written stops the look there (it and the newer ones wait for
         the next look); a report whose slot already holds a newer one is lost.
         """
-        newest = self.counter()
-        if newest <= last:
+        # The device counts in 32 bits; the reader in Python ints. What the counter moved
+        # since `last` (modulo 2^32) is the number of reports written since: a look each
+        # 2^32 reports is enough never to misread a wrap.
+        newest = last + ((self.counter() - last) & _MASK)
+        if newest == last:
             return Taken([], 0, last)
         reports: list[tuple[int, bytes]] = []
         lost = 0
@@ -81,14 +90,14 @@ class Ring:
         for seq in range(first, newest + 1):
             slot = self._slot(seq)
             tail = ctypes.c_uint32.from_address(slot + _WORD + n).value
-            if tail != seq:
+            if tail != seq & _MASK:
                 if _is_newer(tail, seq) or _is_newer(self._head(slot), seq):
                     lost += 1  # rewritten by a later report already
                     taken = seq
                     continue
                 break  # still being written: wait for the next look
             payload = ctypes.string_at(slot + _WORD, n)
-            if self._head(slot) != seq:  # rewritten while it was read
+            if self._head(slot) != seq & _MASK:  # rewritten while it was read
                 lost += 1
                 taken = seq
                 continue
@@ -104,7 +113,7 @@ class Ring:
         """Writes one report as the device does, from the host: bumps the counter, then
         `head`, payload, `tail`, in that order. Returns its seq."""
         words = np.ascontiguousarray(payload, dtype=np.uint32)
-        seq = self.counter() + 1
+        seq = (self.counter() + 1) & _MASK  # 32 bits, as the device's counter
         ctypes.c_uint32.from_address(self.address).value = seq
         slot = self._slot(seq)
         ctypes.c_uint32.from_address(slot).value = seq
@@ -114,5 +123,6 @@ class Ring:
 
 
 def _is_newer(word: int, seq: int) -> bool:
-    """Whether a slot's word names a report after `seq` (so `seq`'s report is gone)."""
-    return word > seq
+    """Whether a slot's 32-bit word names a report after `seq` (so `seq`'s report is gone):
+    in serial-number arithmetic, as the words wrap at 2^32."""
+    return 0 < (word - seq) & _MASK < 2**31

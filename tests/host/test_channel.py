@@ -233,3 +233,20 @@ def test_the_ring_sends_a_sharded_state_s_report_once_not_once_per_device(env_sh
     (record,) = memory.records
     assert (record.step, record.scalars["Episode_Metrics/speed"]) == (5, 3.5)
     assert record.scalars["Episode_Metrics/speed/count"] == 8
+
+
+@pytest.mark.parametrize("slots", [1, 3, 64])
+def test_the_ring_takes_every_report_across_the_wrap_of_its_32_bit_counter(slots):
+    """The device counts reports in a 32-bit word: past 2^32 reports of one layout the
+    counter wraps to 0, 1, ... The reader goes on taking them, in order, none lost."""
+    words, start = 5, 2**32 - 4
+    memory = np.zeros(_ring.ring_words(words, slots), np.uint32)
+    ring = _ring.Ring(memory.ctypes.data, words, slots)
+    memory[0] = start  # as if `start` reports had been written and taken
+    last, taken, lost = start, [], 0
+    for k in range(9):
+        ring.write(np.full(words, k, np.uint32))
+        got = ring.take(last)
+        taken += [int(np.frombuffer(p, np.uint32)[0]) for _, p in got.reports]
+        last, lost = got.last, lost + got.lost
+    assert taken == list(range(9)) and lost == 0 and last == start + 9
