@@ -38,13 +38,18 @@ class ReportsLostError(RuntimeError):
 
     @classmethod
     def ring_overrun(cls, lost: int, slots: int) -> "ReportsLostError":
+        # The reader queues what it takes without bound, so the writers' speed does not
+        # matter: a report is lost when the device makes more than `slots` of them between
+        # two looks of the reader (it looks about every millisecond, and needs the GIL).
+        # A ring of `slots + lost` slots would have held every report of the same run.
+        enough = min(2**16, slots + lost)
         return cls(
             lost,
-            f"{lost} in-graph report(s) were lost: the device wrote them over before the "
-            f"host took them from the report ring of {slots} slots (the writers were "
-            "slower than the reports came). Report less often (a longer report_every, or "
-            "fewer period ends), or give the ring more slots: Logger(..., "
-            f"report_slots={2 * slots}).",
+            f"{lost} in-graph report(s) were lost: the device made more than {slots} "
+            "report(s) between two looks of the host's reader at the report ring, and wrote "
+            "them over before it took them. Report less often (a longer report_every, or "
+            "fewer period ends), or give the ring room for the reports made between looks: "
+            f"Logger(..., report_slots={enough}) would have held these.",
         )
 
     @classmethod
