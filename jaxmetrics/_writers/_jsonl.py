@@ -90,15 +90,14 @@ class JsonlWriter:
             if parent:
                 os.makedirs(parent, exist_ok=True)
             _check_regular(p)
-            self._key = _claim(p)
-        except ForeignFileError:
-            raise
+            self._key = _identity(p)
+            _claim(self._key)
         except (OSError, ValueError) as e:
             raise ValueError(
                 f"JsonlWriter: cannot open {p!r} for appending: {e}. Pass a writable file path."
             ) from None
         try:
-            _repair(p, purge_step)
+            self._key = _repair(p, purge_step, self._key)
             self._file = AppendFile(p)
         except BaseException as e:
             _release(self._key)
@@ -217,9 +216,10 @@ def _cut() -> re.Pattern[bytes]:
     return re.compile(_RECORD_LINE.cut)
 
 
-# The files JsonlWriters of this process hold open: lines of two writers (two runs given
-# one path) would interleave with nothing to tell them apart.
-_OPEN: set[str] = set()
+# The files JsonlWriters of this process hold open, by (st_dev, st_ino): lines of two
+# writers (two runs given one file, through one path or two) would interleave with nothing
+# to tell them apart.
+_OPEN: set[tuple[int, int]] = set()
 _OPEN_LOCK = threading.Lock()
 
 
@@ -234,20 +234,30 @@ def _check_regular(path: str) -> None:
         raise ValueError("it exists and is not a regular file (a FIFO, a device or a folder)")
 
 
-def _claim(path: str) -> str:
-    key = os.path.realpath(path)  # one file, whatever the links that name it
+def _identity(path: str) -> tuple[int, int]:
+    """The file's (st_dev, st_ino), created if missing: one file whatever the paths
+    (symlinks, hard links) that name it."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    try:
+        st = os.fstat(fd)
+    finally:
+        os.close(fd)
+    return st.st_dev, st.st_ino
+
+
+def _claim(key: tuple[int, int]) -> None:
     with _OPEN_LOCK:
         if key in _OPEN:
             raise ValueError(
-                "another JsonlWriter of this process has it open (two runs given one path "
-                "would interleave their lines); give each run its own file, e.g. "
+                "another JsonlWriter of this process has it open, through this path or "
+                "another link to the file (two runs given one file would interleave their "
+                "lines); give each run its own file, e.g. "
                 "lambda run: [JsonlWriter(f'{root}/run_{run}.jsonl')]"
             )
         _OPEN.add(key)
-    return key
 
 
-def _release(key: str) -> None:
+def _release(key: tuple[int, int]) -> None:
     with _OPEN_LOCK:
         _OPEN.discard(key)
 
@@ -319,23 +329,22 @@ def _records(path: str, data: bytes) -> list[bytes]:
     return lines
 
 
-def _repair(path: str, purge_step: int | None) -> None:
+def _repair(path: str, purge_step: int | None, key: tuple[int, int]) -> tuple[int, int]:
     """Ends or drops an unfinished last record (see `_records`), and with `purge_step`
-    drops every line from that step on."""
-    try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except FileNotFoundError:
-        return
+    drops every line from that step on. Returns the identity of the file now at `path`,
+    which is this writer's claim: `key`, or a rewritten file's (claimed before it
+    replaces the old one, so no second writer can find it unclaimed)."""
+    with open(path, "rb") as f:
+        data = f.read()
     lines = _records(path, data)
     if purge_step is not None:
         lines = [line for line in lines if json.loads(line)["step"] < purge_step]
     keep = b"".join(lines)
     if keep == data:
-        return
+        return key
     if data.startswith(keep) or keep == data + b"\n":
         # Cutting off the last bytes or ending the last line is done in place: the file
-        # keeps its mode, and stays the one file its hard links name.
+        # keeps its mode, and stays the one file its hard links and this writer's claim name.
         fd = os.open(path, os.O_WRONLY | os.O_APPEND)
         try:
             if len(keep) < len(data):
@@ -345,7 +354,7 @@ def _repair(path: str, purge_step: int | None) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
-        return
+        return key
     # Lines purged from before kept ones: a rewrite, atomic so that a crash leaves the old
     # file or the new one whole.
     target = os.path.realpath(path)  # replace the file a symlink points to, not the link
@@ -356,5 +365,14 @@ def _repair(path: str, purge_step: int | None) -> None:
         f.write(keep)
         f.flush()
         os.fsync(f.fileno())
+        st = os.fstat(f.fileno())
     os.chmod(tmp, mode)  # the umask narrowed the mode os.open was given
-    os.replace(tmp, target)
+    new = (st.st_dev, st.st_ino)
+    _claim(new)
+    try:
+        os.replace(tmp, target)
+    except BaseException:
+        _release(new)
+        raise
+    _release(key)
+    return new

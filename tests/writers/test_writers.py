@@ -573,3 +573,21 @@ def test_jsonl_writer_ends_its_own_last_record_that_lost_only_its_newline(tmp_pa
         lines = path.read_bytes().splitlines(keepends=True)
         assert lines[:-1] == [*([before] if before else []), second]
         assert json.loads(lines[-1])["step"] == 3
+
+
+def test_a_second_jsonl_writer_through_a_hard_link_to_an_open_file_is_refused(tmp_path):
+    path, link = tmp_path / "m.jsonl", tmp_path / "link.jsonl"
+    writer = jm.JsonlWriter(path)
+    os.link(path, link)
+    with pytest.raises(ValueError, match=r"link.jsonl.*another JsonlWriter .* has it open"):
+        jm.JsonlWriter(link)
+    writer.write(jm.Record(1, 2.0, {}, {}, {}))
+    writer.close()
+    jm.JsonlWriter(link).close()  # free once closed
+    # A purge that rewrites the file (a middle line dropped) keeps the writer's hold on it.
+    path.write_bytes(b"".join(OWN_LINE.replace(b":1,", f":{s},".encode(), 1) for s in (0, 5, 1)))
+    writer = jm.JsonlWriter(path, purge_step=3)
+    with pytest.raises(ValueError, match=r"m.jsonl.*another JsonlWriter .* has it open"):
+        jm.JsonlWriter(path)
+    writer.close()
+    assert [json.loads(line)["step"] for line in path.read_bytes().splitlines()] == [0, 1]
