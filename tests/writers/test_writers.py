@@ -5,12 +5,15 @@ TensorBoard's own reader and the json module)."""
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
 from tensorboard.backend.event_processing import event_accumulator as ea
 from tensorboard.plugins.custom_scalar import layout_pb2
 from tensorboard.plugins.hparams import plugin_data_pb2
@@ -20,6 +23,7 @@ import jaxmetrics as jm
 WINDOW = 5
 BINS, RANGE = 4, (0.0, 1.0)
 STEPS = [10, 20, 30, 40]
+OWN_LINE = b'{"step":1,"wall_time":2.0,"scalars":{},"histograms":{},"windows":{}}\n'
 
 
 def _periods():
@@ -384,12 +388,23 @@ def test_tensorboard_writer_rejects_bad_options_at_creation(tmp_path):
         b'{"lr": 0.1}',  # another program's JSON, no final newline
         b'{"lr": 0.1}\n',
         b"notes\nlast line without newline",
-        b'{"step":1,"wall_time":2.0,"scalars":{},"histograms":{},"windows":{}}',  # whole, unterminated
-        b'{"step":1,"wall_time":2.0,"scalars":{},"histograms":{},"windows":{}}\n{"a": 1}\n',
+        OWN_LINE + b'{"a": 1}\n',
         # Another program's JSON that starts like this writer's lines, and a lone brace:
         b'{"step": 10, "lr": 0.1, "note": "my config"}',  # json.dump: no final newline
         b'{"step":10,"lr":0.1}',
         b"{",
+        # Compact JSON that starts as this writer's lines do, whole or cut, and then differs:
+        b'{"step":100,"lr":0.001,}',
+        b'{"step":3,"config":{"lr":0.1,"bat',
+        b'{"step":3,"',  # too short to tell from the line above
+        b'{"step":3,"wall_time":1.5,"loss":0.25',
+        OWN_LINE + b'{"step":3,"config":{"lr":0.1,"bat',
+        OWN_LINE + b'{"step":3,"wall_time":1.5,"scalars":{"x":1.0},"histograms":[',
+        # This writer's keys in its order, but not its spacing or its values' shape:
+        OWN_LINE.replace(b",", b", ") + b"{",
+        OWN_LINE.replace(b'"scalars":{}', b'"scalars":{"x":"high"}') + b"{",
+        OWN_LINE + b'{"step":2,"wall_time":3.0,"scalars":{"x":1.0,"x":2.0},"histograms":{},'
+        b'"windows":{}}',  # a whole JSON value, but no line of this writer (a tag twice)
     ],
 )
 def test_jsonl_writer_refuses_a_file_that_is_not_its_own_and_touches_nothing(tmp_path, content):
@@ -397,7 +412,7 @@ def test_jsonl_writer_refuses_a_file_that_is_not_its_own_and_touches_nothing(tmp
     path.write_bytes(content)
     os.chmod(path, 0o600)
     with pytest.raises(
-        jm.ForeignFileError, match=r"config.json.*not a JsonlWriter record.*left untouched"
+        jm.ForeignFileError, match=r"config.json.*JsonlWriter record.*left untouched"
     ):
         jm.JsonlWriter(path)
     assert path.read_bytes() == content
@@ -417,6 +432,104 @@ def test_jsonl_writer_drops_only_its_own_cut_record(tmp_path, before, cut):
     path.write_bytes(before + cut)
     jm.JsonlWriter(path).close()
     assert path.read_bytes() == before
+
+
+_JSON = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=5),
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=5), inner, max_size=3)
+    ),
+    max_leaves=6,
+)
+
+
+@settings(
+    max_examples=200,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(
+    step=st.integers(),
+    rest=st.dictionaries(st.text(max_size=10), _JSON, max_size=4),
+    compact=st.booleans(),
+    ascii_only=st.booleans(),
+    after_own_lines=st.booleans(),
+    cut=st.integers(1, 200),
+    newline=st.booleans(),
+)
+def test_jsonl_writer_never_modifies_another_programs_json_that_starts_like_its_lines(
+    tmp_path, step, rest, compact, ascii_only, after_own_lines, cut, newline
+):
+    # Another program's object with "step" first, as json.dumps writes it, cut anywhere (or
+    # whole, with or without its newline), alone or after whole lines of this writer.
+    obj = {"step": step, **rest}
+    separators = (",", ":") if compact else None
+    text = json.dumps(obj, separators=separators, ensure_ascii=ascii_only).encode()
+    line = text[:cut] + (b"\n" if newline and cut >= len(text) else b"")
+    # This writer's first two keys start its records: past them, a cut line could be its own.
+    assume(list(obj)[1:2] != ["wall_time"])
+    if after_own_lines:
+        # A cut inside those keys could be its own too, after its own lines.
+        assume(not f'{{"step":{step},"wall_time":'.encode().startswith(line))
+    content = (OWN_LINE if after_own_lines else b"") + line
+    path = tmp_path / "other.jsonl"
+    path.write_bytes(content)
+    with pytest.raises(jm.ForeignFileError, match=r"other.jsonl.*left untouched"):
+        jm.JsonlWriter(path)
+    assert path.read_bytes() == content
+
+
+_FINITE = st.floats(allow_nan=False, allow_infinity=False)
+_TAGS = st.text(max_size=6)
+_RECORDS = st.builds(
+    jm.Record,
+    step=st.integers(min_value=-(2**63), max_value=2**63),
+    wall_time=st.floats(min_value=0.0, max_value=4e9),
+    scalars=st.dictionaries(_TAGS, _FINITE | st.integers(0, 2**64), max_size=3),
+    histograms=st.dictionaries(
+        _TAGS,
+        st.builds(
+            jm.HistogramData,
+            edges=st.lists(_FINITE, min_size=1, max_size=3).map(lambda e: np.array(e, np.float64)),
+            counts=st.lists(st.integers(0, 2**40), max_size=2).map(lambda c: np.array(c, np.int64)),
+            underflow=st.integers(0, 9),
+            overflow=st.integers(0, 9),
+        ),
+        max_size=1,
+    ),
+    windows=st.dictionaries(
+        _TAGS, st.lists(_FINITE, max_size=3).map(lambda w: np.array(w, np.float64)), max_size=2
+    ),
+)
+
+
+@settings(
+    max_examples=40,
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(records=st.lists(_RECORDS, min_size=1, max_size=2))
+def test_jsonl_writer_recovers_its_own_last_record_cut_at_any_byte(tmp_path, records):
+    path = tmp_path / "m.jsonl"
+    path.unlink(missing_ok=True)
+    writer = jm.JsonlWriter(path)
+    for record in records:
+        writer.write(record)
+    writer.close()
+    data = path.read_bytes()
+    start = data.rfind(b"\n", 0, -1) + 1
+    before, last = data[:start], data[start:]
+    for k in range(1, len(last)):
+        path.write_bytes(before + last[:k])
+        if before or re.match(rb'\{"step":-?\d+,"wall_time":', last[:k]):
+            jm.JsonlWriter(path).close()
+            # Cut before its newline, the record is dropped; cut at it, it is whole and kept.
+            assert path.read_bytes() == (data if k == len(last) - 1 else before), k
+        else:
+            # A first line cut before its first two keys could be another program's.
+            with pytest.raises(jm.ForeignFileError, match=r"m.jsonl.*too short.*delete it"):
+                jm.JsonlWriter(path)
+            assert path.read_bytes() == last[:k]
 
 
 def test_jsonl_writer_repairs_a_crash_cut_record_keeping_mode_and_symlink(tmp_path):
@@ -447,3 +560,34 @@ def test_two_runs_given_one_jsonl_path_are_refused_when_the_writers_are_made(tmp
     writer = jm.JsonlWriter(path)  # the refused Logger left the file free again
     writer.close()
     jm.JsonlWriter(os.path.join(tmp_path, ".", "m.jsonl")).close()  # and after close
+
+
+def test_jsonl_writer_ends_its_own_last_record_that_lost_only_its_newline(tmp_path):
+    path = tmp_path / "m.jsonl"
+    second = OWN_LINE.replace(b'"step":1', b'"step":2')
+    for before in (b"", OWN_LINE):
+        path.write_bytes(before + second[:-1])
+        writer = jm.JsonlWriter(path)
+        writer.write(jm.Record(3, 4.0, {"x": 0.5}, {}, {}))
+        writer.close()
+        lines = path.read_bytes().splitlines(keepends=True)
+        assert lines[:-1] == [*([before] if before else []), second]
+        assert json.loads(lines[-1])["step"] == 3
+
+
+def test_a_second_jsonl_writer_through_a_hard_link_to_an_open_file_is_refused(tmp_path):
+    path, link = tmp_path / "m.jsonl", tmp_path / "link.jsonl"
+    writer = jm.JsonlWriter(path)
+    os.link(path, link)
+    with pytest.raises(ValueError, match=r"link.jsonl.*another JsonlWriter .* has it open"):
+        jm.JsonlWriter(link)
+    writer.write(jm.Record(1, 2.0, {}, {}, {}))
+    writer.close()
+    jm.JsonlWriter(link).close()  # free once closed
+    # A purge that rewrites the file (a middle line dropped) keeps the writer's hold on it.
+    path.write_bytes(b"".join(OWN_LINE.replace(b":1,", f":{s},".encode(), 1) for s in (0, 5, 1)))
+    writer = jm.JsonlWriter(path, purge_step=3)
+    with pytest.raises(ValueError, match=r"m.jsonl.*another JsonlWriter .* has it open"):
+        jm.JsonlWriter(path)
+    writer.close()
+    assert [json.loads(line)["step"] for line in path.read_bytes().splitlines()] == [0, 1]
