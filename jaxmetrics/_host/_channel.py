@@ -43,6 +43,15 @@ MIN_CUDA_DRIVER = 12030
 needs to stay inside a graph."""
 CHANNELS = ("auto", "ring", "io_callback")
 DEFAULT_SLOTS = 64
+POLL_S = 1e-3
+"""The ring reader's look interval while reports arrive: a report is lost when the device
+makes more than `slots` of them between two looks."""
+IDLE_POLL_S = 32e-3
+"""The longest interval between looks, reached by doubling after each look that found
+nothing: idle Loggers that poll at 1 kHz for the process's life take a CPU core's share and
+the GIL from the program (20 of them: 26% of a core, a CPU-bound JAX loop 28% slower). At
+most 32 ms of reports (64 slots: over 2,000 a second) can pile up before the reader is back
+at `POLL_S`."""
 SELF_TEST_TIMEOUT_S = 120.0
 """How long the self-test's round trip may take (a compile and one run) before the ring is
 judged not to work."""
@@ -393,7 +402,8 @@ class Channel:
       slots: the ring's slots per layout and device: how many reports the host may fall
         behind the device before one is lost.
       on_error: where an exception of `deliver` goes (the channel's thread cannot raise).
-      poll_interval_s: how long the ring's thread sleeps between looks.
+      poll_interval_s: how long the ring's thread sleeps between looks while reports
+        arrive; after a look that found none it waits twice as long, up to `IDLE_POLL_S`.
 
     Attributes:
       choice: the channel taken (`Choice`), decided at the first `send` traced (or the
@@ -407,7 +417,7 @@ class Channel:
         requested: str = "auto",
         slots: int = DEFAULT_SLOTS,
         on_error: Callable[[BaseException], None] | None = None,
-        poll_interval_s: float = 1e-3,
+        poll_interval_s: float = POLL_S,
     ):
         self._callback, self._deliver, self._requested = callback, deliver, requested
         self._weak_callback = _WeakCallback(callback)
@@ -459,15 +469,20 @@ class Channel:
             self._thread.start()
 
     def _poll(self) -> None:
-        while not self._stop.wait(self.poll_interval_s):
-            self.take()
+        interval = self.poll_interval_s
+        while not self._stop.wait(interval):
+            found = self.take()
+            interval = self.poll_interval_s if found else min(2 * interval, IDLE_POLL_S)
 
-    def take(self) -> None:
-        """Hands every whole report the rings hold now to `deliver`, in order."""
+    def take(self) -> int:
+        """Hands every whole report the rings hold now to `deliver`, in order; returns how
+        many reports the rings held since the last look (taken or lost)."""
+        found = 0
         with self._lock:
             for site in list(self._sites.values()):
                 for key, ring in list(site.rings.items()):
                     taken = ring.take(site.taken.get(key, 0))
+                    found += taken.last - site.taken.get(key, 0)
                     site.taken[key] = taken.last
                     self._lost += taken.lost
                     for _, payload in taken.reports:
@@ -477,6 +492,7 @@ class Channel:
                             if self._on_error is None:
                                 raise
                             self._on_error(e)
+        return found
 
     def drain(self) -> None:
         """After the device work that sends has finished (`jax.effects_barrier()`): every

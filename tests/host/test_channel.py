@@ -252,3 +252,28 @@ def test_the_ring_takes_every_report_across_the_wrap_of_its_32_bit_counter(slots
         taken += [int(np.frombuffer(p, np.uint32)[0]) for _, p in got.reports]
         last, lost = got.last, lost + got.lost
     assert taken == list(range(9)) and lost == 0 and last == start + 9
+
+
+def test_an_idle_ring_reader_backs_off_and_a_report_brings_it_back(monkeypatch):
+    """An idle reader looks less and less often (at most every IDLE_POLL_S), so idle Loggers
+    cost about nothing; the first report after an idle spell is still delivered by the
+    reader itself."""
+    looks = []
+    take = _channel.Channel.take
+
+    def counted(channel):
+        looks.append(threading.get_ident())
+        return take(channel)
+
+    monkeypatch.setattr(_channel.Channel, "take", counted)
+    delivered = threading.Event()
+    channel = _channel.Channel(lambda v: None, lambda v: delivered.set(), "ring")
+    send = jax.jit(lambda x: jax.lax.cond(x > 0, lambda: channel.send(x), lambda: None))
+    jax.block_until_ready(send(0))  # traced: the reader starts; nothing is sent
+    threading.Event().wait(0.5)  # idle: nothing sent
+    idle_looks = len(looks)
+    # At 1 kHz that would be about 500 looks; doubling to every 32 ms makes about 20.
+    assert 5 <= idle_looks <= 40
+    jax.block_until_ready(send(7))
+    assert delivered.wait(1.0)  # picked up by the reader's own look, no drain
+    channel.close()
