@@ -402,6 +402,8 @@ class Channel:
       slots: the ring's slots per layout and device: how many reports the host may fall
         behind the device before one is lost.
       on_error: where an exception of `deliver` goes (the channel's thread cannot raise).
+      on_lost: called on the channel's thread when a look finds reports overwritten,
+        before it delivers the (newer) reports it took.
       poll_interval_s: how long the ring's thread sleeps between looks while reports
         arrive; after a look that found none it waits twice as long, up to `IDLE_POLL_S`.
 
@@ -418,10 +420,11 @@ class Channel:
         slots: int = DEFAULT_SLOTS,
         on_error: Callable[[BaseException], None] | None = None,
         poll_interval_s: float = POLL_S,
+        on_lost: Callable[[], None] | None = None,
     ):
         self._callback, self._deliver, self._requested = callback, deliver, requested
         self._weak_callback = _WeakCallback(callback)
-        self._on_error = on_error
+        self._on_error, self._on_lost = on_error, on_lost
         self.slots, self.poll_interval_s = slots, poll_interval_s
         self._choice: Choice | None = None
         self._sites: dict[Any, _Site] = {}
@@ -485,6 +488,8 @@ class Channel:
                     found += taken.last - site.taken.get(key, 0)
                     site.taken[key] = taken.last
                     self._lost += taken.lost
+                    if taken.lost and self._on_lost is not None:
+                        self._on_lost()
                     for _, payload in taken.reports:
                         try:
                             self._deliver(*site.decode(payload))

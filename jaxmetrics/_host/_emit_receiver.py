@@ -177,6 +177,10 @@ class EnvStepsContinuation:
         return functools.partial(_shifted, host, self._tag, offset)
 
 
+OVERWRITTEN = (-1, -1)
+"""`LateRecords`' first record when the ring overwrote it: no run or step to name."""
+
+
 class LateRecords:
     """The records that reached the Logger after its `close`: counted, never written.
 
@@ -216,8 +220,28 @@ class LateRecords:
             )
             self._on_first()
 
+    def overwritten(self) -> None:
+        """The report ring lost reports to this closed Logger before the host took them
+        (counted by the channel): where that comes before any late record, the first
+        record lost has no step to name, and the one taken after it must not be named
+        first."""
+        with self._lock:
+            first = self._count == 0 and self._first is None
+            if first:
+                self._first = OVERWRITTEN
+        if first:
+            _log.warning(
+                "jaxmetrics: the Logger that Logger.emit or a reporting wrapper reports to "
+                "was closed while the training still runs: its report ring was overwritten "
+                "before the host took the reports; they and every later one are not written "
+                "(the training goes on). The Logger's next close() raises ReportsLostError "
+                "with the number. %s",
+                CLOSE_AFTER_TRAINING,
+            )
+            self._on_first()
+
     def take(self) -> tuple[int, tuple[int, int] | None]:
-        """(count, (run, step) of the first) since the last call."""
+        """(count, (run, step) of the first, or `OVERWRITTEN`) since the last call."""
         with self._lock:
             taken = (self._count, self._first)
             self._count, self._first = 0, None

@@ -56,7 +56,11 @@ class ReportsLostError(RuntimeError):
     def after_close(cls, lost: int, first: tuple[int, int] | None, fix: str) -> "ReportsLostError":
         """`first`: the run and step of the first record lost (None: the ring overwrote
         it before the host took it)."""
-        since = "" if first is None else f", from run {first[0]}'s record at step {first[1]} on"
+        since = (
+            ", from a report the ring overwrote before the host took it on"
+            if first is None
+            else f", from run {first[0]}'s record at step {first[1]} on"
+        )
         return cls(
             lost,
             f"{lost} record(s) reached this Logger after its close() and were not "

@@ -29,7 +29,13 @@ from .._core._validate import is_int
 from . import _channel, _close_at_exit, _history
 from ._call_checks import check_settings, check_state, check_step, is_traced, scalar_args
 from ._emit_in_graph import InGraphEmit
-from ._emit_receiver import CLOSE_AFTER_TRAINING, EmitReceiver, LateRecords, WrapperPeriod
+from ._emit_receiver import (
+    CLOSE_AFTER_TRAINING,
+    OVERWRITTEN,
+    EmitReceiver,
+    LateRecords,
+    WrapperPeriod,
+)
 from ._emit_receiver import unreported as unreported_steps
 from ._errors import CallerReports
 from ._errors import NonFiniteError as NonFiniteError
@@ -223,6 +229,7 @@ class Logger(AbstractContextManager):
             report_channel,
             report_slots,
             on_error=self._reports.error,
+            on_lost=self._ring_overwritten,
         )
         send = self._channel.send
         self._emit = InGraphEmit(compute, metrics.reset_period, send)
@@ -437,6 +444,12 @@ class Logger(AbstractContextManager):
         if not on_writer:
             self._close_again()
 
+    def _ring_overwritten(self) -> None:
+        """The ring lost reports (the channel's thread): after `close`, they are late
+        records, and where they come first the first late record has no step."""
+        if self._thread.closed:
+            self._late.overwritten()
+
     def _close_again(self) -> None:
         """`close` of a closed Logger: waits for the writer thread, raises what a writer's
         close deferred, then the records that reached the Logger after its close."""
@@ -454,6 +467,7 @@ class Logger(AbstractContextManager):
         late += self._channel.take_lost()
         if late:
             _close_at_exit.forget(self)
+            first = None if first == OVERWRITTEN else first
             raise ReportsLostError.after_close(late, first, CLOSE_AFTER_TRAINING)
 
     def __exit__(self, *exc: object) -> None:

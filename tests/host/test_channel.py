@@ -277,3 +277,27 @@ def test_an_idle_ring_reader_backs_off_and_a_report_brings_it_back(monkeypatch):
     jax.block_until_ready(send(7))
     assert delivered.wait(1.0)  # picked up by the reader's own look, no drain
     channel.close()
+
+
+def test_a_closed_ring_logger_names_no_step_for_a_first_lost_report_the_ring_overwrote():
+    """After close nobody reads the ring until the next close drains it: a 16-slot ring
+    keeps the last 16 of 40 late reports, the first 24 were overwritten. The error counts
+    all 40 and does not name the first one it could read (step 34) as the first lost (10)."""
+    metrics = jm.Metrics(logged=["x"])
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [memory], report_channel="ring", report_slots=16)
+
+    def body(state, i):
+        state = metrics.log(state, {"x": i.astype(jnp.float32)})
+        return logger.emit(state, i, jnp.bool_(True)), None
+
+    train = jax.jit(lambda state, steps: jax.lax.scan(body, state, steps)[0])
+    state = train(metrics.init(1), jnp.arange(10))
+    logger.close()
+    assert [r.step for r in memory.records] == list(range(10))
+    train(state, jnp.arange(10, 50))
+    with pytest.raises(jm.ReportsLostError) as error:
+        logger.close()
+    assert error.value.lost == 40
+    assert "from a report the ring overwrote before the host took it on" in str(error.value)
+    assert "step 34" not in str(error.value) and len(memory.records) == 10
