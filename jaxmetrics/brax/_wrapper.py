@@ -161,15 +161,35 @@ def _brax_training_env_steps() -> int | None:
     return None
 
 
-def _brax_reset_from(wrapper: Wrapper) -> State | None:
-    """The env state Brax's PPO resets `wrapper`'s env from, when it resets the envs
-    between epochs (`num_resets_per_eval > 0`), else None.
+def _wraps(env: Any, wrapper: "MetricsWrapper") -> bool:
+    """Whether `wrapper` is `env` or one of the envs it wraps, down the stack.
+
+    Follows each wrapper's `env` attribute rather than Brax's `Wrapper` class: every
+    wrapper library keeps the env it wraps there, and the stacks Brax's trainers are given
+    mix libraries (Playground's `BraxAutoResetWrapper` is a `mujoco_playground` `Wrapper`,
+    not a Brax one, and sits above this wrapper in `jaxmetrics.playground.wrap`'s stack).
+    The ids seen stop the walk on an `env` that leads back into the stack.
+    """
+    seen: set[int] = set()
+    while env is not None and id(env) not in seen:
+        if env is wrapper:
+            return True
+        seen.add(id(env))
+        env = getattr(env, "env", None)
+    return False
+
+
+def _brax_reset_from(wrapper: "MetricsWrapper") -> dict[str, Any] | None:
+    """The `info` of the env state Brax's PPO resets `wrapper`'s env from, when it resets
+    the envs between epochs (`num_resets_per_eval > 0`), else None.
 
     Brax resets them through `reset_fn_donated_env_state(env_state_donated, key_envs)`,
     which is handed the last state and drops it (it calls `env.reset(key_envs)`); this
     reads it from that frame, so that the wrapper's statistics survive the reset. Trace
-    time only, as `_in_brax_evaluator`; the frame's `env` must be this wrapper's stack, so
-    a state of another env is never taken.
+    time only, as `_in_brax_evaluator`; the frame's `env` must be a stack holding this
+    wrapper, so a state of another env is never taken. The state is Brax's `State` or
+    Playground's (another class with the same `info`): what is read is that `info` holds
+    this wrapper's keys.
     """
     frame = sys._getframe(1)
     while frame is not None:
@@ -177,9 +197,15 @@ def _brax_reset_from(wrapper: Wrapper) -> State | None:
             frame.f_globals.get("__name__")
         ).startswith("brax."):
             env, state = frame.f_locals.get("env"), frame.f_locals.get("env_state_donated")
-            while isinstance(env, Wrapper) and env is not wrapper:
-                env = env.env
-            return state if env is wrapper and isinstance(state, State) else None
+            info = getattr(state, "info", None)
+            if (
+                _wraps(env, wrapper)
+                and isinstance(info, dict)
+                and STATE_KEY in info
+                and CLOCK_KEY in info
+            ):
+                return info
+            return None
         frame = frame.f_back
     return None
 
@@ -333,8 +359,8 @@ class MetricsWrapper(Wrapper):
                 # Brax resets the envs, not the training: statistics, windows, EMAs,
                 # counters and the period go on, so records keep Brax's step and none is
                 # lost; only the running episodes end, unfinished, with their envs.
-                mstate = previous.info[STATE_KEY]._replace(running=mstate.running)
-                clock = previous.info[CLOCK_KEY]
+                mstate = previous[STATE_KEY]._replace(running=mstate.running)
+                clock = previous[CLOCK_KEY]
             info[CLOCK_KEY] = clock
         info[STATE_KEY] = mstate
         # flax.struct adds `replace` to Brax's State at run time.

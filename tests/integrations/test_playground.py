@@ -1,5 +1,6 @@
 """jaxmetrics.playground on MuJoCo Playground's CartpoleBalance (MJX, CPU) under lax.scan
-with Playground's auto-reset and action_repeat=2.
+with Playground's auto-reset and action_repeat=2, and inside Brax's `ppo.train` with the
+env resets between epochs that Playground's configs ask for.
 
 The reference is a hand-written float64 unroll of the unwrapped env: every physics
 sub-step is stepped in a Python loop, episodes end at the time limit, and envs that are
@@ -9,11 +10,14 @@ info keys it writes.
 """
 
 import functools
+import math
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from brax.training.agents.ppo import train as brax_ppo
 from mujoco_playground import registry, wrapper
 
 import jaxmetrics as jm
@@ -177,3 +181,102 @@ def test_wrap_rejects_what_it_cannot_wrap():
         jmp.wrap(wrapper.wrap_for_brax_training(env), metrics)
     with pytest.raises(ValueError, match=r"full_reset=True\) is not supported.*full_reset=False"):
         jmp.wrap(env, metrics, full_reset=True)
+
+
+# Brax's PPO, smoke-sized: epochs of 2 training steps of 256 env steps (512 env steps, 32
+# steps of the 16-env batch), 2 epochs per evaluation, each followed by an env reset
+# (num_resets_per_eval), 4 epochs in all; episodes of 10 env steps, so every epoch ends 3
+# episodes per env and leaves one running.
+PPO_ENVS, PPO_EPISODE, PPO_RESETS = 16, 10, 2
+
+
+def _episodes_by(env_step: int, epoch: int) -> int:
+    """The episodes all envs ended in the first `env_step` env steps of the training, where
+    the trainer resets every env after each `epoch` env steps. CartpoleBalance never
+    terminates, so each env ends an episode at every multiple of the time limit of its
+    steps since its last reset, and an episode running at a reset never ends."""
+    since_reset = ended = 0
+    for t in range(1, env_step // PPO_ENVS + 1):
+        since_reset += 1
+        ended += since_reset % PPO_EPISODE == 0
+        if t % (epoch // PPO_ENVS) == 0:
+            since_reset = 0
+    return ended * PPO_ENVS
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("report_every", [384, 512])
+def test_brax_ppo_env_resets_keep_the_playground_wrapper_s_records(
+    brax_ppo_on_this_jax, report_every
+):
+    # The reset-frame walk knew Brax's Wrapper only, and Playground's BraxAutoResetWrapper
+    # (the top of jmp.wrap's stack) is not one: every env reset restarted the wrapper, so
+    # Counters/episodes went 48, 48, 48, 48 (384: records stamped 384, 768, 1152, 1536
+    # where the envs had run 384, 896, 1408, 1920 env steps), and close() noticed a
+    # trainer that does not hand over its state. 512 divides the epoch, 384 does not.
+    metrics = jm.Metrics(
+        terms={
+            "length": jmp.episode_length(stats=("mean", "count")),
+            "truncated": jmp.truncation_rate(stats=("mean",)),
+        }
+    )
+    memory = jm.MemoryWriter()
+    logger = jm.Logger(metrics, [memory])
+    progress: list[int] = []
+    with warnings.catch_warnings(record=True) as warned:
+        warnings.simplefilter("always")
+        with jmp.default_promotion():  # the suite runs strict (conftest)
+            brax_ppo.train(
+                environment=load_env(),
+                num_timesteps=2048,
+                episode_length=PPO_EPISODE,
+                num_envs=PPO_ENVS,
+                batch_size=16,
+                num_minibatches=2,
+                unroll_length=8,
+                num_updates_per_batch=1,
+                num_evals=3,
+                num_eval_envs=4,
+                num_resets_per_eval=PPO_RESETS,
+                max_devices_per_host=1,
+                wrap_env_fn=functools.partial(
+                    jmp.wrap, metrics=metrics, logger=logger, report_every=report_every
+                ),
+                progress_fn=lambda step, _: progress.append(int(step)),
+                seed=0,
+            )
+        logger.close()
+
+    # Brax's own steps: its evaluations, `PPO_RESETS` epochs apart, and its last step.
+    final = progress[-1]
+    epoch = (progress[1] - progress[0]) // PPO_RESETS
+    assert final // epoch > PPO_RESETS  # the records run across several env resets
+    # A report at the first batch step that reaches each period: the record's step is
+    # Brax's env step there, up to the last one within the training.
+    period = math.ceil(report_every / PPO_ENVS) * PPO_ENVS
+    steps = list(range(period, final + 1, period))
+    records = [r for r in memory.records if "Counters/episodes" in r.scalars]
+    assert [r.step for r in records] == steps
+    assert [r.scalars["Counters/env_steps"] for r in records] == steps
+
+    ended = [_episodes_by(s, epoch) for s in steps]
+    got = [int(r.scalars["Counters/episodes"]) for r in records]
+    assert got == ended
+    assert all(a < b for a, b in zip(got, got[1:]))  # counters go on through every reset
+    assert [int(r.scalars["Episode_Metrics/length/count"]) for r in records] == [
+        b - a for a, b in zip([0, *ended], ended)
+    ]
+    for r in records:  # every episode ran to the time limit: none ended at a reset
+        assert r.scalars["Episode_Metrics/length"] == PPO_EPISODE
+        assert r.scalars["Episode_Metrics/truncated"] == 1.0
+
+    # No notice of a restart; only the steps after the last record, where there are any.
+    notices = [str(w.message) for w in warned if issubclass(w.category, RuntimeWarning)]
+    if final % period == 0:
+        assert notices == []
+    else:
+        (notice,) = notices
+        assert (
+            f"wrote its last record at env step {steps[-1]:,}: the last "
+            f"{final - steps[-1]:,} of the {final:,} env steps" in notice
+        ), notice
