@@ -78,7 +78,6 @@ def fold_shards(
         return one_shard(*args)
     if axes is not None:
         # No collective: every input and output is split over `axes` on its shard axis.
-        # The varying-axes check is off: the fused kernel (a pallas_call) has no rule.
         spec = jax.sharding.PartitionSpec(axes)
-        return jax.shard_map(one_shard, in_specs=spec, out_specs=spec, check_vma=False)(*args)
+        return jax.shard_map(one_shard, in_specs=spec, out_specs=spec)(*args)
     return jax.vmap(fold)(*args)
