@@ -7,8 +7,7 @@ by `brax.envs.training.wrap` (VmapWrapper + EpisodeWrapper + AutoResetWrapper), 
 pseudo-random actions drawn in-graph; every variant runs the same rollout.
 """
 
-import contextlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -19,20 +18,6 @@ import jaxmetrics as jm
 from . import _workload as wl
 from ._report import Table
 from ._timing import Variant, blocking, compile_jit, measure, tree_bytes
-
-
-@contextlib.contextmanager
-def _xla_path() -> Iterator[None]:
-    """While a rollout is traced: the fused GPU kernel serves no batch, so every fold takes
-    XLA's path (jnp), as on a backend without the kernel."""
-    from jaxmetrics._core._stream import _kernel
-
-    fits = _kernel.fits
-    _kernel.fits = lambda batch, dtype: False
-    try:
-        yield
-    finally:
-        _kernel.fits = fits
 
 
 def _brax_promotion():
@@ -162,7 +147,6 @@ def _jitted(name: str, ro: Rollout, steps: int, per_step, carry) -> Variant:
 VARIANTS = (
     "empty",
     "floor",
-    "xla",
     "lean",
     "wrapper",
     "brax",
@@ -175,7 +159,6 @@ LABELS = {
     "empty": "jaxmetrics, empty spec",
     "floor": "hand-written in-graph sum+count of 10 metrics (floor)",
     "jaxmetrics": "jaxmetrics, 10 terms",
-    "xla": "jaxmetrics, same 10 terms, XLA's path (the fused GPU kernel off)",
     "lean": "jaxmetrics, same 10 terms, simple stats only (no EMA/window/histogram)",
     "wrapper": "jaxmetrics.brax.wrap (MetricsWrapper), same 10 terms",
     "brax": "Brax episode_metrics (sums) stacked over the scan, one copy per rollout into "
@@ -184,7 +167,7 @@ LABELS = {
     "callback_dict": "per-step jax.debug.callback -> per-env Python-dict logger",
     "device_get_loop": "Python loop: jitted step + device_get per step -> numpy logger",
 }
-E2E_ROWS = ("bare", "empty", "floor", "jaxmetrics", "xla", "lean", "wrapper")
+E2E_ROWS = ("bare", "empty", "floor", "jaxmetrics", "lean", "wrapper")
 ALT_ROWS = ("jaxmetrics", "floor", "brax", "callback_numpy", "callback_dict", "device_get_loop")
 
 
@@ -270,9 +253,6 @@ def end_to_end(
         if k == "jaxmetrics" or k in variants:
             per_step = _with_floor if k == "floor" else _with_metrics(specs[k])
             built.append(_jitted(k, ro, steps, per_step, carries[k]))
-    if "xla" in variants:
-        with _xla_path():
-            built.append(_jitted("xla", ro, steps, _with_metrics(spec), carries["jaxmetrics"]))
     if "wrapper" in variants:
         wro = Rollout(env_name, backend, num_envs, metrics=wl.rollout_spec(transition=True))
         built.append(_jitted("wrapper", wro, steps, _bare, None))
@@ -306,7 +286,7 @@ def end_to_end(
         ["variant", "ms/step", "x bare", "overhead %", "compile s", "metrics state bytes"],
     )
     state_bytes = {k: tree_bytes(c) for k, c in carries.items()}
-    state_bytes.update(bare=0, wrapper=state_bytes["jaxmetrics"], xla=state_bytes["jaxmetrics"])
+    state_bytes.update(bare=0, wrapper=state_bytes["jaxmetrics"])
     for k in E2E_ROWS:
         if k in timings:
             x = timings[k].median_s / steps / bare_step

@@ -164,6 +164,9 @@ def test_progress_fn_builds_records_without_the_jax_core():
 def test_old_module_names_are_gone():
     for gone in ("_flush.py", "_step.py", "_writers/_record.py", "_reporting.py", "_emitted.py"):
         assert not (PACKAGE / gone).exists(), gone
+    # The fused GPU kernel (Pallas, Triton) and what only it needed: retired.
+    for gone in ("_kernel", "_program", "_layout", "_reached", "_chunks"):
+        assert not (PACKAGE / "_core" / "_stream" / f"{gone}.py").exists(), gone
 
 
 def every_stat_metrics() -> jm.Metrics:

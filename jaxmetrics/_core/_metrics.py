@@ -361,12 +361,10 @@ class Metrics:
             for i, where in _inputs.group_ids(self._rows, step_input, num_envs)
         ]
         # Each device folds its own shard where the trace knows the devices' axes
-        # (`_shard_fold`), which lets the segment rows take the fused kernel too.
+        # (`_shard_fold`).
         axes = shard_axes(state.shard_counts.hi, shards)  # type: ignore[union-attr]
         segments_plan = self._rows.ep_segments
-        segmented = segments_plan is not None and segments_plan.serves(
-            num_envs // shards, shards == 1 or axes is not None
-        )
+        segmented = segments_plan is not None and segments_plan.serves(num_envs // shards)
         rows, segments = _inputs.by_group(self._rows, values, ok, bad, group_ids, segmented)
         # Materialized once: without the barrier XLA recomputes the episode values from
         # the old accumulators inside each reduction, which makes it copy them every step.

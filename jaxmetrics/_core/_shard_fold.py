@@ -3,9 +3,9 @@ state's env shards (`[S, M, E/S]`, shard s the s-th block of envs) and each shar
 `_stream.add_with_counts` into its own accumulators and counters, with no collective.
 
 Where the trace knows the devices' axes of the shards (`_sharding.shard_axes`), each device
-folds its shard on its own inside `jax.shard_map`, which lets a GPU's shard take the fused
-kernel; XLA cannot partition that kernel (a `pallas_call`), so shards it must partition as
-one batch take XLA's kernels."""
+folds its shard on its own inside `jax.shard_map`: the program says that a step moves
+nothing between devices, where a batch of shards (`vmap`) leaves the partitioning to XLA.
+Where the trace cannot tell the axes, the shards are folded as that batch."""
 
 from collections.abc import Sequence
 from typing import Any
@@ -54,14 +54,12 @@ def fold_shards(
         # a local view, and everything below reduces within a shard only.
         return jnp.moveaxis(a.reshape(a.shape[0], shards, num_envs // shards), 1, 0)
 
-    fused = shards == 1 or axes is not None
-
     def fold(st, b, t, e, g):
         with_segments = None
         if g is not None:
             assert segments_plan is not None  # `g`: the segment sources' batch
             with_segments = (segments_plan, g)
-        return _stream.add_with_counts(plan, st, b, t, e, fused=fused, segments=with_segments)
+        return _stream.add_with_counts(plan, st, b, t, e, segments=with_segments)
 
     def one_shard(*args):
         # A vmap of size 1 would still batch the fold's scatters: the shard is folded as
@@ -80,7 +78,6 @@ def fold_shards(
         return one_shard(*args)
     if axes is not None:
         # No collective: every input and output is split over `axes` on its shard axis.
-        # The varying-axes check is off: the fused kernel (a pallas_call) has no rule.
         spec = jax.sharding.PartitionSpec(axes)
-        return jax.shard_map(one_shard, in_specs=spec, out_specs=spec, check_vma=False)(*args)
+        return jax.shard_map(one_shard, in_specs=spec, out_specs=spec)(*args)
     return jax.vmap(fold)(*args)

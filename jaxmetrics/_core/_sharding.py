@@ -57,9 +57,8 @@ def shard_axes(leaf: jax.Array, shards: int) -> tuple[str, ...] | None:
     traces under (the state's own, which a state made by `init(sharding=...)` carries in
     its type, or the one the caller set with `jax.set_mesh`), as the one set of its axes
     whose devices number `shards`; where two sets would do (a 2 x 2 mesh and 2 shards), none is
-    guessed. The state's shards are then folded per device (`jax.shard_map`), where each
-    device's shard can take the fused GPU kernel; without axes they are folded as one
-    batch of shards, which XLA keeps local to each device too, with its own kernels.
+    guessed. The state's shards are then folded per device (`jax.shard_map`); without axes
+    they are folded as one batch of shards, which XLA keeps local to each device too.
     """
     if shards < 2:
         return None

@@ -241,9 +241,7 @@ def test_group_period_statistics_as_masked_rows_match_the_reference(data):
         _check(METRICS.init(E), *data, run=_RUN_MASKED)
 
 
-def test_segments_serve_every_batch_on_cpu_large_ones_elsewhere_and_none_to_our_kernel(
-    monkeypatch,
-):
+def test_segments_serve_every_batch_on_cpu_and_large_ones_elsewhere(monkeypatch):
     plan = METRICS._rows.ep_segments
     assert plan is not None and plan.rows > 0
 
@@ -264,11 +262,6 @@ def test_segments_serve_every_batch_on_cpu_large_ones_elsewhere_and_none_to_our_
     monkeypatch.setattr(seg, "ACCELERATOR_MIN_GROUPS", 1)
     assert not plan.serves(-(-limit // plan.rows) - 1)
     assert plan.serves(-(-limit // plan.rows))
-    # Where our kernel folds the rows (a GPU, one shard, a float32 batch it fits), never.
-    monkeypatch.setattr(seg, "ACCELERATOR_MIN_ENTRIES", 1)
-    fits = jm._core._stream._kernel.MAX_BATCH
-    assert plan.serves(fits) and not plan.serves(fits, True)
-    assert plan.serves(fits + 1, True)
 
 
 def _shapes(hlo_text: str) -> list[tuple[int, ...]]:

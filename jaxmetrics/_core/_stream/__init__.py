@@ -15,12 +15,10 @@ All rows are stacked so that one fused XLA kernel serves every metric, whatever 
 number: the per-step cost grows with rows x envs elementwise, not with kernel launches.
 
 The package, one job a module: `_state` (the state, its plan, the rings), `_fold` (a
-batch into the state), `_update` (a batch's statistics into the per-row fields), `_kernel`
-(that fold as one GPU kernel; `_layout`, its inputs and outputs by name; `_program`, one
-program of it), `_selected` (a batch's
-rows as source rows masked to a group), `_segments` (group rows of period statistics by
-segment reductions), `_merge` (states of
-disjoint workers into one) and `_compute` (the report statistics).
+batch into the state), `_update` (a batch's statistics into the per-row fields), `_hists`
+(a batch into the histograms), `_selected` (a batch's rows as source rows masked to a
+group), `_segments` (group rows of period statistics by segment reductions), `_merge`
+(states of disjoint workers into one) and `_compute` (the report statistics).
 """
 
 from ._compute import compute as compute

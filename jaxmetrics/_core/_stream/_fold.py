@@ -1,8 +1,8 @@
 """Folding a batch into the stream: the period statistics, the EMA, the rings and the
-histograms, with XLA's kernels or, on a CUDA GPU, one kernel of our own (`_kernel`).
+histograms, in jnp on every backend.
 
-The batch's statistics go into the per-row fields by `_update`: after the batch's
-kernels by XLA, or, where our kernel folds each row in one program, by that program.
+The batch's statistics go into the per-row fields by `_update`, after the batch's
+reduction.
 
 Steering XLA's fusion: a per-row field that does not depend on the batch's counts `k`
 (the counted sums, the zeroed histogram step counts; `_update`'s own fields likewise) is
@@ -24,30 +24,28 @@ from .. import _count, _sketch
 from .._count import Count
 from .._numerics import log2_keep
 from .._sharding import gathered
-from . import _hists, _kernel, _reached, _segments, _update
+from . import _hists, _segments, _update
 from ._segments import SegmentPlan
 from ._selected import Selected
 from ._state import Ring, StreamPlan, StreamState, packed, take_rows, weight_dtype, window_ring
 
-# What a fold gives (`_fold_rows`): the batch's statistics, each EMA ring's and each
-# window ring's data, each histogram's counts and `hist_steps`, and the fields and counts
-# where the fused kernel updated them itself (else None).
 A = TypeVar("A")
 B = TypeVar("B")
 BatchStats = tuple[
     jax.Array, jax.Array, jax.Array, jax.Array, jax.Array, jax.Array, jax.Array,
-    jax.Array | None, jax.Array | None,
+    jax.Array | None, jax.Array,
 ]  # fmt: skip
-"""A batch's statistics in `_update.Batch`'s order (its EMA sum and counted sums None
-where there are none)."""
+"""A batch's statistics in `_update.Batch`'s order (its EMA sum None where there is
+none)."""
 Folded = tuple[
     _update.Batch,
     tuple[jax.Array, ...],
     tuple[jax.Array, ...],
     tuple[Count, ...],
     tuple[jax.Array, ...],
-    tuple[_update.Fields, Count] | None,
 ]
+"""What a fold gives (`_fold`): the batch's statistics, each EMA ring's and each window
+ring's data, each histogram's counts and `hist_steps`."""
 
 
 def add(
@@ -79,21 +77,13 @@ def add_with_counts(
     batch: Selected,
     counted: jax.Array,
     counts: Count,
-    fused: bool = False,
-    interpret: bool = False,
     segments: tuple[SegmentPlan, tuple[jax.Array, ...]] | None = None,
 ) -> tuple[StreamState, Count]:
     """`add` of the rows that `batch` selects (`Selected`), and `counts`
     (`[counts_width(plan, C)]`) plus the sum of each row of `counted[C, B]` (integers), in
     its first C entries. The sums are taken in the batch's own reduction and added in
     the update of the per-row fields (`_update`), where separate counts would be two more
-    kernels. `fused` lets a CUDA GPU fold the batch (its reduction, arrival ranks, EMA sum
-    and ring writes, and where each row is one program the update of its fields) in one
-    kernel of our own (`_kernel`, where the spec has an EMA, a window or group rows and the
-    batch fits it; histograms and sketches keep XLA's kernels); the caller
-    passes it only for a batch that is not split over devices, which that kernel cannot
-    be. `interpret` (with `fused`) runs that kernel on
-    any platform, in Pallas' interpret mode (slow: for tests).
+    kernels.
 
     `segments`, for a stream with segment rows (`_segments`): its `SegmentPlan` and the
     segment sources' batch (values, ok, non-finite counts, group index, `[sources, B]`);
@@ -110,22 +100,22 @@ def add_with_counts(
         batch = batch.arrays(gathered)
     folds = plan
     if segments is None:
-        folded = _fold_rows(plan, s, batch, shift, counted, fused, interpret, counts)
+        folded = _fold_dense(plan, s, batch, shift, counted)
     else:
         sp, sources = segments
         folds = sp.dense_plan
         part = _segments.dense_state(sp, s)
-        folded = _fold_rows(folds, part, batch, part.mean, counted, fused, interpret)
+        folded = _fold_dense(folds, part, batch, part.mean, counted)
         grouped = _segments.segment_batch(
             *(gathered(a) for a in sources),
             groups=sp.groups,
             shift=_segments.segment_rows(sp, shift),
         )
-        joined = _segments.joined(sp, _update.Batch(*folded[0]), grouped, counted.shape[0], width)
-        folded = (joined, *folded[1:-1], None)
-    stats, ema_data, window_data, hists, hist_steps, updated = folded
+        joined = _segments.joined(sp, folded[0], grouped, counted.shape[0], width)
+        folded = (joined, *folded[1:])
+    stats, ema_data, window_data, hists, hist_steps = folded
     k = stats[0]
-    fields, counts = updated or _updated(plan, s, stats, shift, counts)
+    fields, counts = _updated(plan, s, stats, shift, counts)
     ema_rings = s.ema_rings
     if plan.ema_rows:
         ek = take_rows(plan.ema_rows, k)
@@ -154,51 +144,23 @@ def _updated(
     """The state's per-row fields with the batch's statistics (`_update.Batch`) folded in
     (`_update.update`), and the counted rows' `counts` plus the batch's counted sums."""
     wt = weight_dtype(plan.dtype)
-    fields = _update.update(_update.Fields.of(s), stats, shift, update_rows(plan), wt)
+    fields = _update.update(_update.Fields.of(s), stats, shift, _update_rows(plan), wt)
     packs = counts.lo.shape[0] // len(plan.rows) if plan.rows else 0
     k = jnp.tile(stats.count, packs)
-    assert stats.counted_sums is not None  # XLA's fold sums the counted rows
     return fields, _count.add(counts, jnp.where(k < 0, 0, stats.counted_sums))
 
 
-def update_rows(plan: StreamPlan) -> _update.Rows:
+def _update_rows(plan: StreamPlan) -> _update.Rows:
     """What `_update.update` needs to know of the plan's rows."""
     is_ema, coeff = plan.ema_by_row(1.0) if plan.ema_rows else (None, None)
     rows = np.arange(len(plan.rows))
     return _update.Rows(is_ema, coeff, tuple((g.size, np.isin(rows, g.rows)) for g in plan.windows))
 
 
-def _fold_rows(
-    plan: StreamPlan,
-    s: StreamState,
-    batch: Selected,
-    shift: jax.Array,
-    counted: jax.Array,
-    fused: bool,
-    interpret: bool,
-    counts: Count | None = None,
-) -> Folded:
-    """`_fold` of the rows `batch` selects, or where `fused`, the batch fits and the
-    spec has an EMA, a window or group rows, or a batch past `REDUCED_BY_XLA` entries,
-    `_fold_fused`; `counted` is `[C, B]` (C up to the plan's rows times the packs of
-    `counts_width`). With `counts` (the counted rows' counts), the fused kernel may update
-    the state's per-row fields and the counts itself: `(fields, counts)` last (else None)."""
-    kernel_serves = plan.ema_rows or plan.windows or batch.grouped or batch.batch > REDUCED_BY_XLA
-    if kernel_serves and fused and _kernel.fits(batch.batch, plan.dtype):
-        return _fold_fused(plan, s, batch, shift, counted, interpret, counts)
-    return (*_fold_dense(plan, s, batch, shift, counted), None)
-
-
 def _fold_dense(
     plan: StreamPlan, s: StreamState, batch: Selected, shift: jax.Array, counted: jax.Array
-) -> tuple[
-    _update.Batch,
-    tuple[jax.Array, ...],
-    tuple[jax.Array, ...],
-    tuple[Count, ...],
-    tuple[jax.Array, ...],
-]:
-    """`_fold` of the rows `batch` selects, as arrays, with `counted` padded to
+) -> Folded:
+    """`_fold` of the rows `batch` selects, as arrays, with `counted` (`[C, B]`) padded to
     `counts_width` rows."""
     width = counts_width(plan, counted.shape[0])
     counted = jnp.pad(counted, ((0, width - counted.shape[0]), (0, 0)))
@@ -300,11 +262,6 @@ def batch_two_pass(
     return k, bsum, bmin, bmax, mb + (pivot - shift), m2b, bad, ema_sum, counted_sums
 
 
-REDUCED_BY_XLA = 4096
-"""Entries up to which ungrouped rows of the period statistics alone (no EMA, no window)
-are one XLA reduction (`batch_one_pass`), as fast as the kernel there; past it the
-kernel's chunks, which need no counts without ranks, are faster (8,192 envs 9.11 -> 8.74
-us, 65,536 15.69 -> 15.00: fbf0e6c)."""
 ONE_STAGE = 4096
 """Entries up to which `batch_one_pass` reduces a row in one stage: XLA reduced a row of
 16,384 in one program, 6.4 us of a 14.0 us step; in two stages 2.4 + 1.5, the step 9.7, and
@@ -470,13 +427,7 @@ def _fold(
     nonfinite: jax.Array,
     shift: jax.Array,
     counted: jax.Array,
-) -> tuple[
-    _update.Batch,
-    tuple[jax.Array, ...],
-    tuple[jax.Array, ...],
-    tuple[Count, ...],
-    tuple[jax.Array, ...],
-]:
+) -> Folded:
     """The batch's statistics (`_update.Batch`), and what it adds that depends on
     arrival order, and its histograms: the data of each EMA ring and each window ring, and
     each histogram's counts with its `hist_steps`. `counted` has `counts_width` rows."""
@@ -524,95 +475,6 @@ def _hists_add(
         _hists.add(g, h, z, take_rows(g.rows, values), take_rows(g.rows, mask), plan.dtype)
         for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
     )
-
-
-def _fold_fused(
-    plan: StreamPlan,
-    s: StreamState,
-    batch: Selected,
-    shift: jax.Array,
-    counted: jax.Array,
-    interpret: bool,
-    counts: Count | None = None,
-) -> Folded:
-    """`_fold` on a CUDA GPU (or where `interpret`): the batch's statistics, the EMA and
-    the rings in one kernel of our own (`_kernel.fold`), which reads the rows from
-    `batch`'s source rows; elsewhere `_fold` itself, of the rows as arrays."""
-    rows = len(plan.rows)
-    packs = counts_width(plan, counted.shape[0]) // rows
-
-    def where_of(members: tuple[int, ...]) -> np.ndarray:
-        out = np.full(rows, -1, np.int32)
-        out[list(members)] = np.arange(len(members), dtype=np.int32)
-        return out
-
-    def kernel(s: StreamState, batch: Selected, shift: jax.Array, counted: jax.Array) -> Folded:
-        rings = []
-        for g, r in zip(plan.ema_groups, s.ema_rings):
-            if r.size:
-                members = where_of(plan.stream_rows(g))
-                rings.append(_kernel.RingIn(r.data, r.pos, members, members))
-        for g, r in zip(plan.windows, s.windows):
-            mine = where_of(g.rows)  # the window's `pos` has every stream row
-            pos_row = np.where(mine >= 0, np.arange(rows), -1)
-            rings.append(_kernel.RingIn(r.data, r.pos, mine, pos_row))
-        ema = None
-        if plan.ema_rows:
-            ema = _kernel.EmaIn(plan.ema_by_row(0.0)[1], s.ema_w, s.ema_off)
-        # Rows read from the lists count their entries into the histograms in the kernel,
-        # where XLA would scatter every entry of the batch (and for group rows first find
-        # each entry's row: docs/benchmarks.md, "Why the fast paths");
-        # otherwise XLA scatters and the kernel adds the counts.
-        hist_rows = (
-            tuple(_hists.HistRows.of(g, where_of(g.rows)) for g in plan.hists) if listed else ()
-        )
-        hists = tuple(
-            _hists.HistIn(
-                z if listed else _hists.counted_selected(g, z, batch, plan.dtype), h.lo, h.hi
-            )
-            for g, h, z in zip(plan.hists, s.hists, s.hist_steps)
-        )
-        update = None
-        if own:
-            assert counts is not None  # `own` needs counts
-            update = _update.InKernel(_update.Fields.of(s), update_rows(plan), counts)
-        stats, data, hists, updated = _kernel.fold(
-            batch,
-            shift,
-            s.steps,
-            counted,
-            packs,
-            ema,
-            tuple(rings),
-            interpret,
-            listed=listed,
-            hists=hists,
-            hist_rows=hist_rows,
-            update=update,
-        )
-        data = iter(data)
-        ema_data = tuple(next(data) if r.size else r.data for r in s.ema_rings)
-        words = tuple(Count(h.hi, h.lo) for h in hists)
-        return stats, ema_data, tuple(data), words, tuple(h.counted for h in hists), updated
-
-    def reference(s: StreamState, batch: Selected, shift: jax.Array, counted: jax.Array) -> Folded:
-        folded = _fold_dense(plan, s, batch, shift, counted)
-        return (
-            *folded,
-            _updated(plan, s, folded[0], shift, counts) if own and counts is not None else None,
-        )
-
-    # Where each row is one program of the kernel, that program also updates the row's
-    # fields of the state, where XLA's update is one more kernel (docs/benchmarks.md,
-    # "Why the fast paths"); not with EMA rings (exact merges), which XLA advances.
-    ranked = bool(plan.ema_rows or plan.windows)
-    listed = _reached.listed(sum(k >= 0 for k in batch.kind), batch.batch, ranked)
-    one = listed or _kernel.one_program(rows, batch.batch, batch.grouped, ranked)
-    own = counts is not None and one and not any(r.size for r in s.ema_rings)
-    args = (s, batch, shift, counted)
-    if interpret:
-        return kernel(*args)
-    return jax.lax.platform_dependent(*args, cuda=kernel, default=reference)
 
 
 def _pairs(items: Iterable[tuple[A, B]]) -> tuple[tuple[A, ...], tuple[B, ...]]:

@@ -24,21 +24,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _kernel
 from ._state import StreamPlan, StreamState
 from ._update import Batch
 
 ACCELERATOR_MIN_ENTRIES = 2**22
-"""Segment rows x envs from which an accelerator without our kernel folds group rows as
-segments: measured on the H100 through XLA's kernels (what such an accelerator runs), the
-segments lost at 4,096 envs (1 group, full spec, 46.4 us against 18.5) and won with 64
-groups of 10 sources at 16,384 envs (10.5 million entries: 45.5 against 93.0; 816ce47).
-Not measured on a TPU or a ROCm GPU."""
+"""Segment rows x envs from which an accelerator folds group rows as segments: measured on
+the H100 through XLA's kernels, the segments lost at 4,096 envs (1 group, full spec, 46.4
+us against 18.5) and won with 64 groups of 10 sources at 16,384 envs (10.5 million
+entries: 45.5 against 93.0; 816ce47). Not measured on a TPU or a ROCm GPU."""
 ACCELERATOR_MIN_GROUPS = 64
-"""Groups per source (on average) from which an accelerator without our kernel folds them
-as segments: with few groups the scatters' atomic adds contend (1 group at 16,384 envs,
-period statistics, 159.7 us against 20.9 masked; 64 groups won: 816ce47, db0cbf9). Not measured on
-a TPU or a ROCm GPU."""
+"""Groups per source (on average) from which an accelerator folds them as segments: with
+few groups the scatters' atomic adds contend (1 group at 16,384 envs, period statistics,
+159.7 us against 20.9 masked; 64 groups won: 816ce47, db0cbf9). Not measured on a TPU or
+a ROCm GPU."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,25 +63,16 @@ class SegmentPlan:
         """The segment rows: every source's groups."""
         return sum(n for _, n in self.blocks)
 
-    def serves(self, num_envs: int, fused: bool = False) -> bool:
+    def serves(self, num_envs: int) -> bool:
         """Whether a batch of `num_envs` envs folds the segment rows by segment reductions
-        here (at trace time), or as masked rows like the others; `fused`: the caller lets
-        a CUDA GPU fold the rows in our kernel (`_fold.add_with_counts`).
+        here (at trace time), or as masked rows like the others.
 
-        On a CPU a masked row costs a pass over the envs, so segments always win. Where our
-        kernel folds the rows (a GPU, a float32 batch it fits), it reads each group row
-        from the batch and skips a chunk without arrivals, which beat the segments'
-        scatters in every case measured, many groups over large batches included
-        (docs/benchmarks.md, "Per-group statistics"). On another accelerator one masked
-        reduction reads every row in one kernel, while the segment path's scatters are
-        kernels of their own whose atomic adds contend when few groups share the envs:
-        there segments won only with many groups over a large batch. A ROCm GPU, which
-        JAX also calls a GPU, runs the masked rows in XLA's kernels."""
+        On a CPU a masked row costs a pass over the envs, so segments always win. On an
+        accelerator one masked reduction reads every row in one kernel, while the segment
+        path's scatters are kernels of their own whose atomic adds contend when few groups
+        share the envs: there segments won only with many groups over a large batch."""
         if jax.default_backend() == "cpu":
             return True
-        dtype = self.dense_plan.dtype
-        if fused and jax.default_backend() == "gpu" and _kernel.fits(num_envs, dtype):
-            return False
         many = self.rows >= ACCELERATOR_MIN_GROUPS * len(self.blocks)
         return many and self.rows * num_envs >= ACCELERATOR_MIN_ENTRIES
 
@@ -152,7 +141,6 @@ def joined(
     ema = dense.ema
     if ema is not None:
         ema = _assembled(sp, ema, jnp.zeros((len(sp.blocks), sp.width), ema.dtype))
-    assert dense.counted_sums is not None  # None only inside the fused kernel
     counted = jnp.pad(dense.counted_sums[:c], (0, width - c))
     return Batch(*both, ema=ema, counted_sums=counted)
 

@@ -3,11 +3,9 @@ batch, over every entry or masked to the entries of one group.
 
 A grouped metric reports one stream row per group beside its overall row, each the
 metric's values masked to that group's envs. Kept as the source rows, the group index
-and a static table of which source and group each row selects, the batch is no bigger
-with groups than without: the fused kernel (`_kernel`) builds a row's mask from them as
-it reads the row, where copies of the batch masked per row are `groups` times its size,
-written and read again every step. XLA's path takes those copies (`dense`), which its
-reductions need.
+and a static table of which source and group each row selects, the batch that a step
+hands the fold (and splits into env shards) is no bigger with groups than without; the
+fold reads the rows as arrays (`dense`), each masked to its group.
 """
 
 import dataclasses
@@ -50,20 +48,8 @@ class Selected:
         return cls(values, mask, nonfinite, ids, tuple(range(rows)), (-1,) * rows, (0,) * rows)
 
     @property
-    def rows(self) -> int:
-        return len(self.src)
-
-    @property
-    def batch(self) -> int:
-        return self.values.shape[-1]
-
-    @property
     def grouped(self) -> bool:
         return any(k >= 0 for k in self.kind)
-
-    def table(self) -> np.ndarray:
-        """Per row: its source row, grouping (-1: none) and group (`[R, 3]` int32)."""
-        return np.stack([self.src, self.kind, self.group], axis=1).astype(np.int32).reshape(-1, 3)
 
     def take(self, rows: tuple[int, ...]) -> "Selected":
         """The selection of `rows` (static) only."""
@@ -84,24 +70,6 @@ class Selected:
         ids = jnp.concatenate([self.ids, jnp.zeros_like(self.ids[:1])])
         kinds = np.asarray(kinds, np.int32)
         return jnp.take(ids, np.where(kinds < 0, self.ids.shape[0], kinds), axis=0)
-
-    def row_of(self) -> tuple[np.ndarray, jax.Array]:
-        """Per distinct (source, grouping) pair of the rows, in order: its source row
-        (`[P]`), and per entry the row it is masked in to (`[P, B]` int32; `rows`: none,
-        its group has no row here or the entry is not `ok`). The rows must be distinct
-        selections (a spec's are). Scattering each pair's entries into their rows reads
-        the batch once per pair, where the rows as arrays are rows x entries."""
-        pairs = sorted(set(zip(self.src, self.kind)))
-        width = max(self.group) + 1
-        # Per pair and group: the row (rows: none); an ungrouped pair's entries are group 0.
-        lut = np.full((len(pairs), width), self.rows, np.int32)
-        for r, (src, kind, group) in enumerate(zip(self.src, self.kind, self.group)):
-            lut[pairs.index((src, kind)), group if kind >= 0 else 0] = r
-        src, kind = (np.array(a, np.int32) for a in zip(*pairs))
-        gid = self.group_index(kind)
-        at = jnp.asarray(lut)[np.arange(len(pairs))[:, None], jnp.clip(gid, 0, width - 1)]
-        inside = (gid >= 0) & (gid < width) & jnp.take(self.ok, src, axis=0)
-        return src, jnp.where(inside, at, self.rows)
 
     def dense(self) -> tuple[jax.Array, jax.Array, jax.Array]:
         """The rows as arrays `[R, B]`: values, mask and non-finite flags."""

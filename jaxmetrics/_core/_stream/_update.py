@@ -1,10 +1,6 @@
 """A batch's statistics folded into the stream's per-row fields (count, moments, sum, min,
-max, EMA, the windows' positions, the arrival step), elementwise.
-
-XLA runs it over the `[R]` fields after the batch's kernels, as one kernel of its own;
-where the fused kernel folds each row in one program (`_kernel`), that program runs it on
-its row's fields (`[1, 1]`) instead, and the step has one kernel fewer. Both run this
-function, so both compute the same arithmetic.
+max, EMA, the windows' positions, the arrival step), elementwise: XLA runs it over the
+`[R]` fields after the batch's reduction, as one kernel of its own.
 
 Steering XLA's fusion: a field that does not depend on the batch's counts `k` (the
 non-finite count, the arrival step) is written as `jnp.where(k < 0, 0, x)`. The test never
@@ -13,18 +9,15 @@ multi-output kernel that updates the other per-row fields (sibling fusions must 
 operand) instead of in a kernel of its own.
 """
 
-from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental import pallas as pl
 
 from .. import _count
 from .._count import Count
 from .._numerics import kahan_add, log2_keep, two_sum
-from ._layout import FieldsIn, FieldsOut, Operand, Words
 from ._state import INT32_MAX, StreamState
 
 
@@ -66,11 +59,10 @@ class Fields(NamedTuple):
 
 
 class Batch(NamedTuple):
-    """Per row of a batch (`[R]`; `[1, 1]` inside the fused kernel, its counted sums None
-    there): its count, sum, min and max (+-inf when empty), the mean of its deviations
-    from `shift` and their sum of squares around that mean, the sum of its `nonfinite`
-    flags, and with an EMA its weighted sum (else None); and `counted_sums`, the sums of
-    the counted rows (`[C]`)."""
+    """Per row of a batch (`[R]`): its count, sum, min and max (+-inf when empty), the mean
+    of its deviations from `shift` and their sum of squares around that mean, the sum of
+    its `nonfinite` flags, and with an EMA its weighted sum (else None); and
+    `counted_sums`, the sums of the counted rows (`[C]`)."""
 
     count: jax.Array  # the field shadows tuple.count  # pyright: ignore[reportIncompatibleMethodOverride]
     sum: jax.Array
@@ -80,7 +72,7 @@ class Batch(NamedTuple):
     m2: jax.Array
     nonfinite: jax.Array
     ema: jax.Array | None
-    counted_sums: jax.Array | None
+    counted_sums: jax.Array
 
 
 class Rows(NamedTuple):
@@ -88,9 +80,9 @@ class Rows(NamedTuple):
     (1 where none; None: no row has one), and per window its size and whether the row is
     in it."""
 
-    is_ema: np.ndarray | jax.Array | None
-    coeff: np.ndarray | jax.Array | None
-    windows: tuple[tuple[int, np.ndarray | jax.Array], ...]
+    is_ema: np.ndarray | None
+    coeff: np.ndarray | None
+    windows: tuple[tuple[int, np.ndarray], ...]
 
 
 def update(f: Fields, b: Batch, shift: jax.Array, rows: Rows, wt: jnp.dtype) -> Fields:
@@ -174,8 +166,8 @@ def _ema_update(
     base, seeding = ema_offset(f.ema_w, f.ema_off, shift)
     seeded = ~seeding
     off = jnp.where(seeded, f.ema_off, mean)
-    # (1-c)^k as the fused kernel weighs values (`exp2`; 0^0 = 1 for c = 1, as
-    # jnp.power gives): a power is a long call on the update's path in that kernel.
+    # (1-c)^k as `_fold.ema_weights` computes the batch's weights (`exp2` of
+    # `log2_keep`; 0^0 = 1 for c = 1, as jnp.power gives): one formula for every power.
     keep = jnp.where(k == 0, 1.0, jnp.exp2(k.astype(dt) * log2_keep(c_all)))
     ema = jnp.where(seeded, keep * f.ema, 0) + new + (base - off)
     # The EMA is `off + ema` as an unevaluated sum, renormalized after every batch (`ema`
@@ -201,181 +193,3 @@ def period_mean(total: jax.Array, total_c: jax.Array, n: jax.Array, chan: jax.Ar
     dt = total.dtype
     mean = (total - total_c) / jnp.maximum(n, 1).astype(dt)
     return jnp.where((n > 0) & jnp.isfinite(mean), mean, chan)
-
-
-class InKernel(NamedTuple):
-    """The state's fields for the fused kernel to update each row itself (`row_updater`):
-    `fields` (`[R]` each), `rows` (`Rows`, its arrays numpy), and the counted rows'
-    counts (`[packs * R]`, pack p of row r at `p * R + r`)."""
-
-    fields: Fields
-    rows: Rows
-    counts: Count
-
-
-def kernel_operands(
-    u: InKernel,
-    col: Callable[[jax.Array], Operand],
-    whole: Callable[[jax.Array], Operand],
-    *,
-    shift: Operand,
-    steps: Operand,
-    ema: tuple[Operand, Operand] | None,
-    pos: tuple[Operand, ...],
-    listed_sums: Operand | None,
-) -> tuple[FieldsIn[Operand], FieldsOut[Operand]]:
-    """The fields the fused kernel updates, as its inputs and outputs (`_layout`): each
-    one operand in both, updated in place (an output in a buffer of its own costs a copy
-    into the loop's state). `col` makes a `[R]` field's operand (a `[1, 1]` block per
-    row), `whole` the counted rows' counts' (`[packs, R]`). The kernel's own inputs of
-    the mean (`shift`), `steps`, the EMA's weight and offset (`ema`; None without EMA
-    rows) and each window's `pos` are updated in place too; `listed_sums` (the counted
-    rows' chunk sums, where the rows are read from the lists) is read only."""
-    f = u.fields
-    packed = _packed(u)
-    count, nonfinite = Words(*map(col, f.count)), Words(*map(col, f.nonfinite))
-    m2, m2_c, total, total_c, vmin, vmax = map(col, (f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max))
-    value = ema_n = None
-    if u.rows.is_ema is not None:
-        value, ema_n = col(f.ema), col(f.ema_n)
-    filled = tuple(map(col, f.filled))
-    counts = Words(*map(whole, packed)) if packed else None
-    ins = FieldsIn(
-        count,
-        nonfinite,
-        m2,
-        m2_c,
-        total,
-        total_c,
-        vmin,
-        vmax,
-        value,
-        ema_n,
-        filled,
-        counts,
-        listed_sums,
-    )
-    ema_w, ema_off = ema if ema is not None else (None, None)
-    outs = FieldsOut(
-        count,
-        nonfinite,
-        shift,
-        m2,
-        m2_c,
-        total,
-        total_c,
-        vmin,
-        vmax,
-        steps,
-        value,
-        ema_off,
-        ema_w,
-        ema_n,
-        pos,
-        filled,
-        counts,
-    )
-    return ins, outs
-
-
-def _packed(u: InKernel) -> list[jax.Array]:
-    """The counted rows' counts as `[packs, R]` words (none without counted rows)."""
-    rows = u.fields.mean.shape[0]
-    packs = u.counts.lo.shape[0] // rows if rows else 0
-    return [a.reshape(packs, rows) for a in u.counts] if packs else []
-
-
-def from_kernel(u: InKernel, outs: FieldsOut[jax.Array]) -> tuple[Fields, Count]:
-    """The fields and counted rows' counts that the kernel wrote (`kernel_operands`)."""
-    f = u.fields
-    o = jax.tree.map(lambda a: a.reshape(-1), outs)
-    ema = (f.ema, f.ema_off, f.ema_w, f.ema_n)
-    if o.ema is not None:
-        assert o.ema_off is not None and o.ema_w is not None and o.ema_n is not None
-        ema = (o.ema, o.ema_off, o.ema_w, o.ema_n)
-    fields = Fields(
-        Count(*o.count),
-        Count(*o.nonfinite),
-        o.mean,
-        o.m2,
-        o.m2_c,
-        o.sum,
-        o.sum_c,
-        o.min,
-        o.max,
-        *ema,
-        steps=o.steps,
-        pos=o.pos,
-        filled=o.filled,
-    )
-    return fields, u.counts if o.counts is None else Count(*o.counts)
-
-
-def row_updater(
-    ins: FieldsIn[Any],
-    outs: FieldsOut[Any],
-    shift: jax.Array,
-    steps: jax.Array,
-    ema: tuple[jax.Array, jax.Array, jax.Array, jax.Array] | None,
-    windows: Sequence[tuple[int, jax.Array, jax.Array]],
-    row: jax.Array,
-) -> Callable[[Batch, Sequence[jax.Array]], None]:
-    """Inside the fused kernel, by the program of row `row` (which folds the whole row):
-    the row's fields read from `ins` now, so that the reads overlap the fold, and what
-    then updates them (`update`) with the batch's statistics (`Batch`) and the sums of its
-    counted rows (`[1, 1]` each) and writes them to `outs` (`kernel_operands`' refs:
-    `[1, 1]` blocks of the row, the counts whole); `shift` and `steps` the row's mean and
-    arrival step; `ema` its EMA's `(is_ema, coeff, ema_w, ema_off)` (None without EMA
-    rows); `windows` per window its size, whether the row is in it and the row's `pos`."""
-    count, nonfinite = (Count(*(a[...] for a in w)) for w in (ins.count, ins.nonfinite))
-    m2, m2_c, total, total_c, vmin, vmax = (
-        a[...] for a in (ins.m2, ins.m2_c, ins.sum, ins.sum_c, ins.min, ins.max)
-    )
-    # Without EMA rows `update` leaves these as they are and nothing writes them back.
-    ema_fields = (shift * 0,) * 4
-    rows = Rows(None, None, tuple((size, mine) for size, mine, _ in windows))
-    if ema is not None:
-        assert ins.ema is not None and ins.ema_n is not None  # `kernel_operands`: with EMA rows
-        is_ema, coeff, ema_w, ema_off = ema
-        ema_fields = (ins.ema[...], ema_off, ema_w, ins.ema_n[...])
-        rows = rows._replace(is_ema=is_ema, coeff=coeff)
-    f = Fields(
-        count,
-        nonfinite,
-        shift,
-        m2,
-        m2_c,
-        total,
-        total_c,
-        vmin,
-        vmax,
-        *ema_fields,
-        steps=steps,
-        pos=tuple(p for *_, p in windows),
-        filled=tuple(a[...] for a in ins.filled),
-    )
-    words = ins.counts
-    counted = [(pl.ds(p, 1), pl.ds(row, 1)) for p in range(words.hi.shape[0])] if words else []
-    counts = [Count(words.hi[at], words.lo[at]) for at in counted] if words else []
-
-    def finish(b: Batch, csums: Sequence[jax.Array]) -> None:
-        new = update(f, b, shift, rows, jnp.float32)
-        written = _written(new, ema is not None)
-        for out, value in zip(jax.tree.leaves(outs._replace(counts=None)), written, strict=True):
-            out[...] = value
-        for at, count, sums in zip(counted, counts, csums):
-            assert outs.counts is not None  # `counted`: there are counted rows
-            outs.counts.hi[at], outs.counts.lo[at] = _count.add(
-                count, jnp.where(b.count < 0, 0, sums)
-            )
-
-    return finish
-
-
-def _written(f: Fields, ema: bool) -> list[jax.Array]:
-    """The fields `update` changes, in `FieldsOut`'s order; the EMA's only with EMA rows
-    (`ema`)."""
-    out = [*f.count, *f.nonfinite, f.mean, f.m2, f.m2_c, f.sum, f.sum_c, f.min, f.max, f.steps]
-    if ema:
-        out += [f.ema, f.ema_off, f.ema_w, f.ema_n]
-    return out + [*f.pos, *f.filled]
