@@ -198,16 +198,24 @@ def test_a_slow_consumer_loses_reports_counts_them_and_keeps_the_rest_in_order()
     assert lost > 0 and len(delivered) + lost == 20
 
 
-def test_a_logger_whose_ring_overflows_raises_at_close_naming_the_loss_and_the_fix():
+def _reporting_every_step(slots):
+    """A ring Logger of `slots` slots, its writer, and `train(state, steps)`: a jitted scan
+    that logs each step's index and emits it as a record."""
     metrics = jm.Metrics(logged=["x"])
     memory = jm.MemoryWriter()
-    logger = jm.Logger(metrics, [memory], report_channel="ring", report_slots=1)
+    logger = jm.Logger(metrics, [memory], report_channel="ring", report_slots=slots)
 
     def body(state, i):
         state = metrics.log(state, {"x": i.astype(jnp.float32)})
         return logger.emit(state, i, jnp.bool_(True)), None
 
-    jax.jit(lambda: jax.lax.scan(body, metrics.init(1), jnp.arange(500))[0])()
+    train = jax.jit(lambda state, steps: jax.lax.scan(body, state, steps)[0])
+    return metrics, memory, logger, train
+
+
+def test_a_logger_whose_ring_overflows_raises_at_close_naming_the_loss_and_the_fix():
+    metrics, memory, logger, train = _reporting_every_step(slots=1)
+    train(metrics.init(1), jnp.arange(500))
     with pytest.raises(jm.ReportsLostError, match=r"between two looks") as error:
         logger.close()
     # The remedy offered is a ring that would have held every report lost.
@@ -283,15 +291,7 @@ def test_a_closed_ring_logger_names_no_step_for_a_first_lost_report_the_ring_ove
     """After close nobody reads the ring until the next close drains it: a 16-slot ring
     keeps the last 16 of 40 late reports, the first 24 were overwritten. The error counts
     all 40 and does not name the first one it could read (step 34) as the first lost (10)."""
-    metrics = jm.Metrics(logged=["x"])
-    memory = jm.MemoryWriter()
-    logger = jm.Logger(metrics, [memory], report_channel="ring", report_slots=16)
-
-    def body(state, i):
-        state = metrics.log(state, {"x": i.astype(jnp.float32)})
-        return logger.emit(state, i, jnp.bool_(True)), None
-
-    train = jax.jit(lambda state, steps: jax.lax.scan(body, state, steps)[0])
+    metrics, memory, logger, train = _reporting_every_step(slots=16)
     state = train(metrics.init(1), jnp.arange(10))
     logger.close()
     assert [r.step for r in memory.records] == list(range(10))
