@@ -436,15 +436,15 @@ def test_every_committed_results_file_renders_each_of_its_tables():
 
 def test_render_keeps_the_prose_and_refuses_what_it_cannot_place():
     _, docs = _committed()
-    one = {"h100_groups.json": docs["h100_groups.json"]}
-    text = "Before.\n<!-- bench: h100_groups.json -->\nstale\n<!-- /bench -->\nAfter.\n"
+    one = {"h200_groups.json": docs["h200_groups.json"]}
+    text = "Before.\n<!-- bench: h200_groups.json -->\nstale\n<!-- /bench -->\nAfter.\n"
     out = _render.render(text, one)
     assert out.startswith(
-        "Before.\n<!-- bench: h100_groups.json -->\n`h100_groups.json`: NVIDIA H100 80GB HBM3, "
+        "Before.\n<!-- bench: h200_groups.json -->\n`h200_groups.json`: NVIDIA H200, "
     )
     assert out.endswith("<!-- /bench -->\nAfter.\n") and "stale" not in out
     assert _render.render(out, one) == out
-    with pytest.raises(ValueError, match=r"no block shows \['h100_groups.json'\]"):
+    with pytest.raises(ValueError, match=r"no block shows \['h200_groups.json'\]"):
         _render.render("Prose only.\n", one)
     with pytest.raises(ValueError, match="'<!-- bench: gone.json -->' names no results file"):
         _render.render("<!-- bench: gone.json -->\n<!-- /bench -->\n", one)
@@ -453,17 +453,17 @@ def test_render_keeps_the_prose_and_refuses_what_it_cannot_place():
 def test_render_is_the_cli_s_render_step(tmp_path):
     text, docs = _committed()
     (tmp_path / "benchmarks").mkdir()
-    for name in ("h100_flush.json", "h100_groups.json"):
+    for name in ("h100_flush.json", "h200_groups.json"):
         with open(tmp_path / "benchmarks" / name, "w") as f:
             json.dump(docs[name], f)
     stale = "<!-- bench: targets -->\n<!-- /bench -->\n" + "".join(
         f"<!-- bench: {n} -->\nSTALE\n<!-- /bench -->\n"
-        for n in ("h100_flush.json", "h100_groups.json")
+        for n in ("h100_flush.json", "h200_groups.json")
     )
     (tmp_path / "benchmarks.md").write_text(stale)
     assert benchmarks.main(["--render", str(tmp_path / "benchmarks.md")]) == []
     out = (tmp_path / "benchmarks.md").read_text()
-    groups = docs["h100_groups.json"]["scenarios"]["groups"]
+    groups = docs["h200_groups.json"]["scenarios"]["groups"]
     col = groups["columns"].index("x no groups")
     full = max((r for r in groups["rows"] if r[0] == "full"), key=lambda r: r[1])
     assert "STALE" not in out  # the GPU file's target row, from its table:
