@@ -28,15 +28,14 @@ from ._state import StreamPlan, StreamState
 from ._update import Batch
 
 ACCELERATOR_MIN_ENTRIES = 2**22
-"""Segment rows x envs from which an accelerator folds group rows as segments: measured on
-the H100 through XLA's kernels, the segments lost at 4,096 envs (1 group, full spec, 46.4
-us against 18.5) and won with 64 groups of 10 sources at 16,384 envs (10.5 million
-entries: 45.5 against 93.0; 816ce47). Not measured on a TPU or a ROCm GPU."""
+"""Segment rows x envs from which an accelerator folds group rows as segments: on a GPU
+through XLA's kernels the segments lost at 4,096 envs and won with 64 groups of 10 sources
+at 16,384 envs (10.5 million entries; docs/benchmarks.md, "Why the fast paths", 816ce47).
+Not measured on a TPU or a ROCm GPU."""
 ACCELERATOR_MIN_GROUPS = 64
 """Groups per source (on average) from which an accelerator folds them as segments: with
-few groups the scatters' atomic adds contend (1 group at 16,384 envs, period statistics,
-159.7 us against 20.9 masked; 64 groups won: 816ce47, db0cbf9). Not measured on a TPU or
-a ROCm GPU."""
+few groups the scatters' atomic adds contend (the same row of docs/benchmarks.md; 816ce47,
+db0cbf9). Not measured on a TPU or a ROCm GPU."""
 
 
 @dataclasses.dataclass(frozen=True)
