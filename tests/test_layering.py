@@ -9,6 +9,8 @@ reductions are the only lists of their names; the in-graph modules that use the 
 """
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -252,3 +254,22 @@ def test_one_public_name_per_concept_and_no_plumbing():
         lower = [n.lower() for n in names]
         assert len(set(lower)) == len(lower), sorted(n for n in names if lower.count(n.lower()) > 1)
     assert not {"STATE_KEY", "norm"} & (set(jmb.__all__) | set(jmp.__all__))
+
+
+def test_importing_jaxmetrics_imports_no_pallas_backend_and_warns_of_nothing():
+    """No GPU backend of Pallas is imported (JAX deprecates the Triton one and will remove
+    it: an import of it would make `import jaxmetrics` fail), and importing warns of
+    nothing, on whatever JAX the suite runs (CI runs the newest too)."""
+    probe = (
+        "import sys, jax; jax_own = set(sys.modules); import jaxmetrics; "
+        "print(sorted(m for m in set(sys.modules) - jax_own if 'pallas' in m or 'triton' in m))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-W", "error", "-c", probe],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=PACKAGE.parent,
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
