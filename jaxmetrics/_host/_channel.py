@@ -505,6 +505,24 @@ class Channel:
         if self._thread is not None:
             self.take()
 
+    def unread_check(self) -> Callable[[], int]:
+        """A function that counts the reports the rings received and this channel did
+        not take, holding the rings weakly and nothing of the channel (nor of what it
+        delivers to): a ring nothing holds any more (no compiled program writes it) counts
+        none."""
+        with self._lock:
+            sites = [weakref.ref(site) for site in self._sites.values()]
+
+        def unread() -> int:
+            count = 0
+            for ref in sites:
+                site = ref()
+                for key, ring in site.rings.items() if site is not None else ():
+                    count += (ring.counter() - site.taken.get(key, 0)) & (2**32 - 1)
+            return count
+
+        return unread
+
     def take_lost(self) -> int:
         """Reports lost since the last call (overwritten before the host took them)."""
         with self._lock:

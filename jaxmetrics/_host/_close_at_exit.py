@@ -14,8 +14,11 @@ when the interpreter clears its modules and drops `_EXIT_STATUS`.
 """
 
 import atexit
+import itertools
 import os
 import sys
+import weakref
+from collections.abc import Callable
 from typing import Protocol
 
 
@@ -52,6 +55,37 @@ def register(logger: _Closable) -> None:
 
 def forget(logger: _Closable) -> None:
     _OPEN.pop(id(logger), None)
+
+
+class _Weakly:
+    """A closed Logger held weakly: closed again at exit while it lives (what reached it
+    after its close is raised then); once collected, `after_collected` at exit raises for
+    what its programs sent it since."""
+
+    def __init__(self, logger: _Closable, after_collected: Callable[[], None]):
+        self._logger = weakref.ref(logger)
+        self._after_collected = after_collected
+
+    def close(self) -> None:
+        logger = self._logger()
+        if logger is None:
+            self._after_collected()
+        else:
+            logger.close()
+
+
+_WEAK_KEYS = itertools.count(-1, -1)  # never an id(): a collected Logger's id is reused
+
+
+def keep_weakly(logger: _Closable, after_collected: Callable[[], None]) -> None:
+    """Checks a closed `logger` at interpreter exit without keeping it alive: a sweep of
+    Loggers in one process keeps none of them (their writers, spec and programs).
+    `after_collected` must hold nothing of the Logger."""
+    forget(logger)
+    if not _REGISTERED:
+        atexit.register(_close_all)
+        _REGISTERED.append(True)
+    _OPEN[next(_WEAK_KEYS)] = _Weakly(logger, after_collected)
 
 
 def _close_all() -> None:

@@ -53,6 +53,15 @@ class ReportsLostError(RuntimeError):
         )
 
     @classmethod
+    def after_collected(cls, lost: int, fix: str) -> "ReportsLostError":
+        return cls(
+            lost,
+            f"{lost} in-graph report(s) reached a Logger that was closed and then garbage "
+            f"collected while a compiled program that reports to it still ran: they were not "
+            f"written. {fix}",
+        )
+
+    @classmethod
     def after_close(cls, lost: int, first: tuple[int, int] | None, fix: str) -> "ReportsLostError":
         """`first`: the run and step of the first record lost (None: the ring overwrote
         it before the host took it)."""

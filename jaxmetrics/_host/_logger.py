@@ -436,13 +436,28 @@ class Logger(AbstractContextManager):
                 # registered: reports the device writes there after this close are
                 # counted by the exit handler's.
                 self._thread.wait_stopped("close")
-                if not self._channel.in_use:
-                    _close_at_exit.forget(self)
+                self._stay_checked()
                 self._surface()
                 return
         # Closed before, or by another thread's close meanwhile.
         if not on_writer:
             self._close_again()
+
+    def _stay_checked(self) -> None:
+        """After a close: a Logger whose reports take the ring stays checked at exit for
+        reports its programs send later, weakly, so that a sweep of Loggers keeps none of
+        them alive; once it is collected, its rings alone are checked (`unread_check`).
+        Any other is forgotten."""
+        if not self._channel.in_use:
+            _close_at_exit.forget(self)
+            return
+        unread = self._channel.unread_check()
+
+        def after_collected() -> None:
+            if lost := unread():
+                raise ReportsLostError.after_collected(lost, CLOSE_AFTER_TRAINING)
+
+        _close_at_exit.keep_weakly(self, after_collected)
 
     def _ring_overwritten(self) -> None:
         """The ring lost reports (the channel's thread): after `close`, they are late
@@ -459,8 +474,7 @@ class Logger(AbstractContextManager):
             # Before the late records are taken: if this raises, they stay counted, and
             # the Logger registered for the exit handler.
             self._surface()
-            if not self._channel.in_use:
-                _close_at_exit.forget(self)
+            self._stay_checked()
         jax.effects_barrier()
         self._channel.drain()  # the ring's reports since the first close: late
         late, first = self._late.take()

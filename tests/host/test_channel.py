@@ -2,7 +2,13 @@
 the bytes and order the GPU's kernel uses; read by the channel's thread) against the
 ordered io_callback, the seqlock reader under a concurrent writer, and lost reports."""
 
+import gc
+import os
+import subprocess
+import sys
 import threading
+import weakref
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -301,3 +307,57 @@ def test_a_closed_ring_logger_names_no_step_for_a_first_lost_report_the_ring_ove
     assert error.value.lost == 40
     assert "from a report the ring overwrote before the host took it on" in str(error.value)
     assert "step 34" not in str(error.value) and len(memory.records) == 10
+
+
+def test_a_closed_ring_logger_is_not_kept_alive_by_the_exit_check():
+    """A sweep of trainings, one ring Logger each, in one process: once closed and dropped,
+    every Logger (its writers, spec and programs) goes; only its rings are checked at
+    exit, weakly."""
+    alive = []
+    for _ in range(3):
+        metrics, memory, logger, train = _reporting_every_step(slots=8)
+        train(metrics.init(1), jnp.arange(4))
+        logger.close()
+        assert [r.step for r in memory.records] == [0, 1, 2, 3]
+        alive.append(weakref.ref(logger))
+        del metrics, memory, logger, train
+    gc.collect()
+    assert [ref() for ref in alive] == [None, None, None]
+
+
+EXIT_AFTER_COLLECTED = """
+import gc, jax, jax.numpy as jnp, jaxmetrics as jm
+metrics = jm.Metrics(logged=["x"])
+logger = jm.Logger(metrics, [jm.MemoryWriter()], report_channel="ring")
+
+def body(state, i):
+    state = metrics.log(state, {"x": i.astype(jnp.float32)})
+    return logger.emit(state, i, jnp.bool_(True)), None
+
+train = jax.jit(lambda s, steps: jax.lax.scan(body, s, steps)[0])
+compiled = train.lower(metrics.init(1), jnp.arange(3)).compile()
+state = compiled(metrics.init(1), jnp.arange(3))
+logger.close()
+del logger, train, body
+gc.collect()
+if RUN_AGAIN:
+    jax.block_until_ready(compiled(state, jnp.arange(3, 6)))  # 3 reports to the gone Logger
+print("done")
+"""
+
+
+@pytest.mark.parametrize("run_again", [False, True])
+def test_reports_to_a_collected_ring_logger_fail_the_process_at_exit(run_again):
+    script = EXIT_AFTER_COLLECTED.replace("RUN_AGAIN", str(run_again))
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300, env=env
+    )
+    assert out.stdout.strip() == "done"
+    if run_again:
+        assert out.returncode == 1, out.stderr
+        assert "3 in-graph report(s) reached a Logger that was closed and then garbage" in (
+            out.stderr
+        )
+    else:
+        assert out.returncode == 0, out.stderr
