@@ -244,7 +244,12 @@ class _Site:
             if ordinal in self.rings:
                 continue
             driver.prepare(ordinal)
-            self.rings[ordinal] = _ring.Ring(driver.pinned(self._nbytes), self.words, self.slots)
+            address = driver.pinned(self._nbytes)
+            self.rings[ordinal] = _ring.Ring(address, self.words, self.slots)
+            # Freed with the site: every compiled program that writes this ring holds the
+            # site (its host callback does), so once the site is gone nothing writes it.
+            # Not at interpreter exit, where the process frees it and CUDA may be gone.
+            weakref.finalize(self, driver.free_pinned, address).atexit = False
 
     def encode(self, leaves: list[jax.Array]) -> jax.Array:
         return jnp.concatenate([leaf.encode(x) for leaf, x in zip(self.leaves, leaves)])

@@ -109,6 +109,7 @@ class Driver:
             "cuCtxPopCurrent_v2": [pp],
             "cuCtxGetDevice": [ctypes.POINTER(i)],
             "cuMemHostAlloc": [pp, sz, u],
+            "cuMemFreeHost": [p],
             "cuModuleLoadData": [pp, ctypes.c_char_p],
             "cuModuleGetFunction": [pp, p, ctypes.c_char_p],
             "cuLaunchKernel": [p, u, u, u, u, u, u, u, p, pp, pp],
@@ -177,6 +178,16 @@ class Driver:
         assert ptr.value is not None  # allocated
         ctypes.memset(ptr.value, 0, nbytes)
         return int(ptr.value or 0)
+
+    def free_pinned(self, address: int) -> None:
+        """Frees memory of `pinned` (once nothing can write it any more)."""
+        with self._lock:
+            self._check(self._lib.cuCtxPushCurrent_v2(self._context(0)), "cuCtxPush")
+            try:
+                rc = self._lib.cuMemFreeHost(ctypes.c_void_p(address))
+            finally:
+                self._lib.cuCtxPopCurrent_v2(ctypes.byref(ctypes.c_void_p()))
+        self._check(rc, "cuMemFreeHost")
 
     def current_device(self) -> int:
         """The ordinal of the device whose context is current on this thread (XLA makes its
