@@ -522,7 +522,9 @@ class Channel:
             count = 0
             for ref in sites:
                 site = ref()
-                for key, ring in site.rings.items() if site is not None else ():
+                if site is None:
+                    continue
+                for key, ring in site.rings.items():
                     count += (ring.counter() - site.taken.get(key, 0)) & (2**32 - 1)
             return count
 
