@@ -525,7 +525,7 @@ class Channel:
                 if site is None:
                     continue
                 for key, ring in site.rings.items():
-                    count += (ring.counter() - site.taken.get(key, 0)) & (2**32 - 1)
+                    count += ring.unread(site.taken.get(key, 0))
             return count
 
         return unread

@@ -177,7 +177,7 @@ class EnvStepsContinuation:
         return functools.partial(_shifted, host, self._tag, offset)
 
 
-OVERWRITTEN = (-1, -1)
+_OVERWRITTEN = (-1, -1)
 """`LateRecords`' first record when the ring overwrote it: no run or step to name."""
 
 
@@ -228,7 +228,7 @@ class LateRecords:
         with self._lock:
             first = self._count == 0 and self._first is None
             if first:
-                self._first = OVERWRITTEN
+                self._first = _OVERWRITTEN
         if first:
             _log.warning(
                 "jaxmetrics: the Logger that Logger.emit or a reporting wrapper reports to "
@@ -241,9 +241,11 @@ class LateRecords:
             self._on_first()
 
     def take(self) -> tuple[int, tuple[int, int] | None]:
-        """(count, (run, step) of the first, or `OVERWRITTEN`) since the last call."""
+        """(count, (run, step) of the first) since the last call; None for the first when
+        the ring overwrote it, or when there was none."""
         with self._lock:
-            taken = (self._count, self._first)
+            first = None if self._first == _OVERWRITTEN else self._first
+            taken = (self._count, first)
             self._count, self._first = 0, None
         return taken
 

@@ -29,13 +29,7 @@ from .._core._validate import is_int
 from . import _channel, _close_at_exit, _history
 from ._call_checks import check_settings, check_state, check_step, is_traced, scalar_args
 from ._emit_in_graph import InGraphEmit
-from ._emit_receiver import (
-    CLOSE_AFTER_TRAINING,
-    OVERWRITTEN,
-    EmitReceiver,
-    LateRecords,
-    WrapperPeriod,
-)
+from ._emit_receiver import CLOSE_AFTER_TRAINING, EmitReceiver, LateRecords, WrapperPeriod
 from ._emit_receiver import unreported as unreported_steps
 from ._errors import CallerReports
 from ._errors import NonFiniteError as NonFiniteError
@@ -432,9 +426,9 @@ class Logger(AbstractContextManager):
                     return
                 # Registered until the writer thread has stopped: if the thread that
                 # closes is a daemon and the interpreter exits meanwhile, the exit handler
-                # waits for the rest. A Logger whose reports take the ring stays
-                # registered: reports the device writes there after this close are
-                # counted by the exit handler's.
+                # waits for the rest. A Logger whose reports take the ring stays checked
+                # at exit, weakly, for what the device writes there after this close
+                # (`_stay_checked`).
                 self._thread.wait_stopped("close")
                 self._stay_checked()
                 self._surface()
@@ -481,7 +475,6 @@ class Logger(AbstractContextManager):
         late += self._channel.take_lost()
         if late:
             _close_at_exit.forget(self)
-            first = None if first == OVERWRITTEN else first
             raise ReportsLostError.after_close(late, first, CLOSE_AFTER_TRAINING)
 
     def __exit__(self, *exc: object) -> None:

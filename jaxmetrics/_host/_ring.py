@@ -62,6 +62,13 @@ class Ring:
         """The `seq` of the last report the writer started."""
         return ctypes.c_uint32.from_address(self.address).value
 
+    def unread(self, last: int) -> int:
+        """How many reports the writer started after `last` (the newest `seq` taken). The
+        device counts in 32 bits, the reader in Python ints: what the counter moved since
+        `last` (modulo 2^32) is that number, so a look each 2^32 reports never misreads a
+        wrap."""
+        return (self.counter() - last) & _MASK
+
     def _slot(self, seq: int) -> int:
         # As the device computes it, from its 32-bit seq: the same slot for any `seq` and
         # `seq` + k * 2^32, whatever the number of slots.
@@ -75,10 +82,7 @@ class Ring:
         A report still being written stops the look there (it and the newer ones wait for
         the next look); a report whose slot already holds a newer one is lost.
         """
-        # The device counts in 32 bits; the reader in Python ints. What the counter moved
-        # since `last` (modulo 2^32) is the number of reports written since: a look each
-        # 2^32 reports is enough never to misread a wrap.
-        newest = last + ((self.counter() - last) & _MASK)
+        newest = last + self.unread(last)
         if newest == last:
             return Taken([], 0, last)
         reports: list[tuple[int, bytes]] = []
