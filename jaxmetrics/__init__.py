@@ -16,6 +16,7 @@ from ._core._spec import groups as groups
 from ._core._spec import histogram as histogram
 from ._core._spec import quantiles as quantiles
 from ._core._spec import window as window
+from ._core._success import success_rate as success_rate
 from ._core._tags import TagInfo as TagInfo
 from ._host._history import History as History
 from ._host._logger import Logger as Logger
@@ -69,6 +70,7 @@ __all__ = [
     "groups",
     "histogram",
     "quantiles",
+    "success_rate",
     "window",
     "wrap_step",
 ]

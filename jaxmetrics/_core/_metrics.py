@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _checkpoint, _count, _episode, _fresh, _inputs, _report, _rows, _stream, _tags
+from . import _checkpoint, _count, _episode, _fresh, _inputs, _live, _report, _rows, _stream, _tags
 from ._count import Count
 from ._metrics_state import MetricsState
 from ._report import Report, ReportLayout
@@ -569,6 +569,55 @@ class Metrics:
             columns.append(("counter", "total", rows, state.counters))
         layout = self._report_layout(include_running, columns)
         return Report(layout, tuple(values for *_, values in columns))
+
+    def read(
+        self, state: MetricsState, metric: str, statistic: str = "mean", *, by_group: bool = False
+    ) -> jax.Array:
+        """In-graph: one live statistic, the value `compute` reports under its tag now.
+
+        For code that acts on statistics while it runs (a curriculum that advances when a
+        group's windowed success rate passes a threshold, an adaptive setting driven by
+        an EMA of returns): a JAX array under `jit`, `scan`, `vmap` and sharding, with no
+        host sync. Under `jit` only this statistic is computed (XLA drops the rest of the
+        report), so it is cheap enough to call every step. A state of several env shards
+        (`init(..., sharding=...)`) is merged first, as `compute` merges it: the read then
+        moves each shard's statistics of the metric, a few hundred bytes, across devices.
+
+        Args:
+          state: the current state.
+          metric: a metric (`<term>`, `<term>/<output>`, a logged name, a group's own row
+            `<metric>/<group>`) or a counter (`episodes`, `env_steps`, ...).
+          statistic: one the metric reports (`mean`, `std`, `min`, `max`, `sum`, `count`,
+            `ema`, `window_mean`, `window_std`, `window_min`, `window_max`,
+            `window_values`, `window_p<p>`, `q<p>`, `histogram`, `nonfinite`; `total`
+            for a counter), or `window_count`: the values in its window so far.
+          by_group: the statistic of each of the metric's groups, `[groups]` in the
+            order of their names, instead of the metric's over all episodes.
+
+        Returns:
+          The statistic (a scalar, `[groups]`, or with the trailing axis of window
+          values and histograms), NaN where it is empty (as in the report). Counts are
+          floats of the state's dtype (exact up to 2^24 in float32).
+
+        Raises:
+          ValueError: (at trace time) an unknown metric or a statistic it does not keep,
+            naming what it has; `by_group` for a metric without groups.
+
+        Examples:
+          >>> import jax, jax.numpy as jnp, jaxmetrics as jm
+          >>> metrics = jm.Metrics(
+          ...     terms={"success": jm.Term(lambda s: s["ok"], stats=(jm.window(2),))},
+          ...     groups=jm.groups(lambda s: s["level"], ("easy", "hard")),
+          ... )
+          >>> state = metrics.init(num_envs=2)
+          >>> step = {"ok": jnp.array([1.0, 0.0]), "level": jnp.array([0, 1])}
+          >>> state = jax.jit(metrics.update)(state, step, jnp.array([True, True]))
+          >>> rate = jax.jit(lambda s: metrics.read(s, "success", "window_mean", by_group=True))
+          >>> rate(state).tolist()
+          [1.0, 0.0]
+        """
+        state = self._check_state(state, "read")
+        return _live.read(self._rows, self.compute, state, metric, statistic, by_group)
 
     def _report_layout(
         self, include_running: bool, columns: list[tuple[str, str, tuple[int, ...], Any]]

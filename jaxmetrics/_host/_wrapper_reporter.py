@@ -172,7 +172,7 @@ class Reporter:
         assert name is not None  # an axis of more than one device
 
         def report() -> None:
-            merged = self._gathered(state, name)
+            merged = gathered(state, name, self.logger.include_running)
 
             def write() -> None:
                 self.logger.emit_from_wrapper(merged, self._step(merged), when, period, self)
@@ -190,20 +190,22 @@ class Reporter:
         totals = _count.total(state.shard_counts)
         return Count(totals.hi[self._env_steps], totals.lo[self._env_steps])
 
-    def _gathered(self, state: MetricsState, name: str) -> MetricsState:
-        """Every device's statistics as shards of one state, in device order (the order
-        of the global env index: the trainer gives device `d` the `d`-th block of envs)."""
 
-        def gather(tree: Any) -> Any:
-            return jax.tree.map(lambda x: jax.lax.all_gather(x, name, tiled=True), tree)
+def gathered(state: MetricsState, name: str, running: bool = False) -> MetricsState:
+    """Every device's statistics as shards of one state, in device order (the order of
+    the global env index: the trainer gives device `d` the `d`-th block of envs); with
+    `running`, every device's running episodes too (else the state keeps its own)."""
 
-        running = state.running
-        if self.logger.include_running and running is not None:
-            running = jax.tree.map(
-                lambda x: jax.lax.all_gather(x, name, axis=x.ndim - 1, tiled=True), running
-            )
-        return state._replace(
-            running=running,
-            finished=gather(state.finished),
-            shard_counts=gather(state.shard_counts),
+    def gather(tree: Any) -> Any:
+        return jax.tree.map(lambda x: jax.lax.all_gather(x, name, tiled=True), tree)
+
+    envs = state.running
+    if running and envs is not None:
+        envs = jax.tree.map(
+            lambda x: jax.lax.all_gather(x, name, axis=x.ndim - 1, tiled=True), envs
         )
+    return state._replace(
+        running=envs,
+        finished=gather(state.finished),
+        shard_counts=gather(state.shard_counts),
+    )

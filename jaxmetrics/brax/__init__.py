@@ -12,13 +12,13 @@ from ._upstream import default_promotion as default_promotion  # first: before B
 from ._upstream import quiet_upstream as quiet_upstream
 
 # isort: split
+from .._core._success import success_rate as success_rate
 from ._progress import ProgressFn as ProgressFn
 from ._terms import control_effort as control_effort
 from ._terms import episode_length as episode_length
 from ._terms import episode_return as episode_return
 from ._terms import joint_velocity as joint_velocity
 from ._terms import state_metrics as state_metrics
-from ._terms import success_rate as success_rate
 from ._terms import termination_rate as termination_rate
 from ._terms import truncation_rate as truncation_rate
 from ._wrapper import MetricsWrapper as MetricsWrapper

@@ -72,43 +72,6 @@ def truncation_rate(*, stats: Sequence[Stat] = DEFAULT_STATS) -> Term:
     return Term(lambda t: t.truncation, reduce="last", stats=stats)
 
 
-def success_rate(
-    fn: Callable[[Transition], Any],
-    *,
-    reduce: str = "last",
-    stats: Sequence[Stat] = DEFAULT_STATS,
-) -> Term:
-    """A per-episode success flag from a boolean `fn(transition) -> [num_envs]`.
-
-    Reduction "last" by default (success at the episode's final step); use "max" for
-    success at any step of the episode. The report mean is the success rate.
-
-    Examples:
-      >>> import jaxmetrics.brax as jmb
-      >>> upright = jmb.success_rate(lambda t: abs(t.state.obs[:, 1]) < 0.05, reduce="max")
-      >>> upright.reduce
-      'max'
-    """
-    if not callable(fn):
-        raise TypeError(f"success_rate(fn=...) must be a function of the Transition, got {fn!r}.")
-    if reduce not in _reductions.FLAG_REDUCTIONS:
-        choices = [f"{r!r} ({says})" for r, says in _reductions.FLAG_REDUCTIONS.items()]
-        raise ValueError(
-            f"success_rate(reduce={reduce!r}): use {', '.join(choices[:-1])} or {choices[-1]}."
-        )
-
-    def flag(t: Transition) -> jax.Array:
-        v = jnp.asarray(fn(t))
-        if v.dtype != jnp.bool_:
-            raise TypeError(
-                f"success_rate: fn returned {v.dtype}; return a bool array of shape "
-                "[num_envs] (e.g. `distance < 0.05`)."
-            )
-        return v
-
-    return Term(flag, reduce=reduce, stats=stats)
-
-
 def state_metrics(
     names: Sequence[str] | Mapping[str, str],
     *,

@@ -15,6 +15,7 @@ Where the MetricsState lives, and why the wrapper sits where it does:
 Hence the order `AutoResetWrapper(MetricsWrapper(VmapWrapper(env)))`, built by `wrap`.
 """
 
+import functools
 import sys
 from collections.abc import Callable
 from typing import Any, NamedTuple, cast
@@ -24,11 +25,12 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State, Wrapper
 from brax.envs.wrappers import training as brax_training
 
+from .._core import _fresh
 from .._core._metrics import Metrics
 from .._core._metrics_state import MetricsState
 from .._core._sharding import placed
 from .._core._validate import is_int
-from .._host._wrapper_reporter import Reporter
+from .._host._wrapper_reporter import Reporter, axis_size, gathered
 from ._upstream import default_promotion
 
 STATE_KEY = "jaxmetrics"
@@ -189,7 +191,7 @@ def _brax_reset_from(wrapper: "MetricsWrapper") -> dict[str, Any] | None:
     time only, as `_in_brax_evaluator`; the frame's `env` must be a stack holding this
     wrapper, so a state of another env is never taken. The state is Brax's `State` or
     Playground's (another class with the same `info`): what is read is that `info` holds
-    this wrapper's keys.
+    a MetricsState.
     """
     frame = sys._getframe(1)
     while frame is not None:
@@ -198,12 +200,7 @@ def _brax_reset_from(wrapper: "MetricsWrapper") -> dict[str, Any] | None:
         ).startswith("brax."):
             env, state = frame.f_locals.get("env"), frame.f_locals.get("env_state_donated")
             info = getattr(state, "info", None)
-            if (
-                _wraps(env, wrapper)
-                and isinstance(info, dict)
-                and STATE_KEY in info
-                and CLOCK_KEY in info
-            ):
+            if _wraps(env, wrapper) and isinstance(info, dict) and STATE_KEY in info:
                 return info
             return None
         frame = frame.f_back
@@ -245,12 +242,12 @@ class MetricsWrapper(Wrapper):
     sit below `AutoResetWrapper`, so that terms see the terminal state of each episode.
     The MetricsState is not per env: code that maps over every `info` leaf assuming a
     leading env axis must leave `info[STATE_KEY]` alone. `reset` starts a fresh
-    MetricsState, except for a reporting wrapper that Brax's PPO resets between epochs
-    (`num_resets_per_eval`): its statistics, counters and period go on, and only the
-    running episodes end. `Counters/env_steps` counts sub-steps (env steps x `action_repeat`,
-    Brax's `num_timesteps` convention). As with Brax's `EpisodeWrapper`, without an
-    `AutoResetWrapper` above it envs keep stepping past `done`, and every further step
-    with `done` set counts as an episode.
+    MetricsState, except for a wrapper that reports or has `on_reset` when Brax's PPO
+    resets it between epochs (`num_resets_per_eval`): its statistics, counters and period
+    go on, and only the running episodes end. `Counters/env_steps` counts sub-steps (env
+    steps x `action_repeat`, Brax's `num_timesteps` convention). As with Brax's
+    `EpisodeWrapper`, without an `AutoResetWrapper` above it envs keep stepping past
+    `done`, and every further step with `done` set counts as an episode.
 
     Args:
       env: a batched Brax env (`VmapWrapper` or `DomainRandomizationVmapWrapper`, or any
@@ -278,6 +275,19 @@ class MetricsWrapper(Wrapper):
         None: every 100 env steps of the batch (`100 * num_envs * action_repeat`).
       axis_name: the `pmap` axis a trainer splits the envs over, where it is bound (Brax's
         trainers use "i"); elsewhere the batch is the whole run.
+      on_reset: `on_reset(read, state) -> state`, for curricula and adaptive settings
+        driven by live statistics: called in-graph on every step with the batched env
+        state as it leaves the wrapper (the terminal state of the envs whose episode
+        ends, `state.done` set), and at `reset` with the fresh state; its result is
+        kept for the envs that begin a new episode (the done ones; every env at
+        `reset`), the other envs keep theirs. `read(metric, statistic="mean",
+        by_group=False)` is `Metrics.read` of the live statistics, this step's finished
+        episodes included: of the whole run under a trainer's `pmap` over `axis_name`
+        (every device reads the same global value; the devices' statistics are gathered
+        for it on every step), and across Brax's resets between epochs. Put what the
+        episodes depend on in `state.info` (e.g. `info["level"]`), where the env's
+        `step` reads it: the auto-reset above this wrapper replaces `obs` and
+        `pipeline_state` by the first ones. See docs/curriculum.md.
 
     Raises:
       ValueError: for a non-positive length/repeat/period, an env that already contains
@@ -295,6 +305,7 @@ class MetricsWrapper(Wrapper):
         logger: Any = None,
         report_every: int | None = None,
         axis_name: str | None = BRAX_AXIS,
+        on_reset: Callable[[Callable[..., jax.Array], Any], Any] | None = None,
     ):
         super().__init__(env)
         if not isinstance(metrics, Metrics):
@@ -322,6 +333,13 @@ class MetricsWrapper(Wrapper):
             if logger is None
             else Reporter(metrics, logger, report_every, axis_name, "MetricsWrapper")
         )
+        if on_reset is not None and not callable(on_reset):
+            raise TypeError(
+                f"MetricsWrapper(on_reset=...) must be a function (read, state) -> state, got "
+                f"{on_reset!r}."
+            )
+        self.on_reset = on_reset
+        self.axis_name = axis_name
 
     def reset(self, rng: jax.Array) -> State:
         if self.sharding is not None:
@@ -348,22 +366,37 @@ class MetricsWrapper(Wrapper):
             episode_done=zeros,
             episode_metrics=episode_metrics,
         )
-        if self.reporter is None or self.sharding is not None:
+        if self.sharding is not None:
             mstate = self.metrics.init(done.shape[0], sharding=self.sharding)
-        else:
+        elif self.reporter is not None:
             mstate = self.reporter.init(done.shape[0])
-        if self.reporter is not None:
-            clock = jnp.zeros((), jnp.int32)
+        elif self.on_reset is not None and self.axis_name is not None:
+            # Under a device axis the live statistics merge the devices' states on every
+            # read: each keeps its EMAs' newest values so that the merge is exact.
+            mstate = _fresh.fresh(self.metrics._rows, done.shape[0], 1, ema_history=True)
+        else:
+            mstate = self.metrics.init(done.shape[0])
+        clock = jnp.zeros((), jnp.int32)
+        # Only a wrapper whose statistics are used inside the trainer (reported or read
+        # live) looks for them; otherwise Brax's reset starts afresh, as Brax's own does.
+        previous = None
+        if self.reporter is not None or self.on_reset is not None:
             previous = _brax_reset_from(self)
-            if previous is not None:
-                # Brax resets the envs, not the training: statistics, windows, EMAs,
-                # counters and the period go on, so records keep Brax's step and none is
-                # lost; only the running episodes end, unfinished, with their envs.
-                mstate = previous[STATE_KEY]._replace(running=mstate.running)
-                clock = previous[CLOCK_KEY]
+        if previous is not None:
+            # Brax resets the envs, not the training: statistics, windows, EMAs,
+            # counters and the period go on, so records keep Brax's step, none is lost
+            # and a curriculum keeps its levels; only the running episodes end,
+            # unfinished, with their envs.
+            mstate = previous[STATE_KEY]._replace(running=mstate.running)
+            clock = previous.get(CLOCK_KEY, clock)
+        # flax.struct adds `replace` to Brax's State at run time.
+        state = state.replace(info=info)  # pyright: ignore[reportAttributeAccessIssue]
+        if self.on_reset is not None:
+            state = self._begin(mstate, state, jnp.ones(done.shape, bool))
+        info = dict(state.info)
+        if self.reporter is not None:
             info[CLOCK_KEY] = clock
         info[STATE_KEY] = mstate
-        # flax.struct adds `replace` to Brax's State at run time.
         return _strong_types(state.replace(info=info))  # pyright: ignore[reportAttributeAccessIssue]
 
     def step(self, state: State, action: jax.Array) -> State:
@@ -432,6 +465,12 @@ class MetricsWrapper(Wrapper):
             episode_done=done,
             episode_metrics=episode_metrics,
         )
+        # flax.struct adds `replace` to Brax's State at run time.
+        nstate = nstate.replace(reward=reward, done=done, info=new_info)  # pyright: ignore[reportAttributeAccessIssue]
+        if self.on_reset is not None:
+            # Before the report resets the period: the read includes this step's episodes.
+            nstate = self._begin(mstate, nstate, done != 0)
+            new_info = dict(nstate.info)
         if self.reporter is not None:
             if not _in_brax_evaluator():
                 mstate, clock = self.reporter(
@@ -446,7 +485,47 @@ class MetricsWrapper(Wrapper):
             mstate = placed(mstate, self._state_sharding)
         new_info[STATE_KEY] = mstate
         # flax.struct adds `replace` to Brax's State at run time.
-        return _strong_types(nstate.replace(reward=reward, done=done, info=new_info))  # pyright: ignore[reportAttributeAccessIssue]
+        return _strong_types(nstate.replace(info=new_info))  # pyright: ignore[reportAttributeAccessIssue]
+
+    def _begin(self, mstate: MetricsState, state: State, begins: jax.Array) -> State:
+        """`state` with `on_reset`'s result for the envs that `begins` (bool `[num_envs]`)."""
+        assert self.on_reset is not None
+        live = mstate
+        if (axis_size(self.axis_name) or 1) > 1:
+            assert self.axis_name is not None  # an axis of more than one device
+            live = gathered(mstate, self.axis_name)
+        new = self.on_reset(functools.partial(self.metrics.read, live), state)
+        return _kept_where(begins, new, state)
+
+
+def _kept_where(begins: jax.Array, new: Any, old: State) -> State:
+    """`new` for the envs that `begins`, `old` for the others, leaf by leaf; a leaf that
+    `on_reset` returned unchanged costs nothing."""
+    new_leaves, new_def = jax.tree.flatten_with_path(new)
+    old_leaves, old_def = jax.tree.flatten_with_path(old)
+    if new_def != old_def:
+        raise ValueError(
+            "MetricsWrapper(on_reset=...) must return the env state it was given with the "
+            "same structure (change values, e.g. state.replace(info={**state.info, "
+            "'level': level})); it returned another structure: "
+            f"{new_def} instead of {old_def}."
+        )
+    n = begins.shape[0]
+    out = []
+    for (path, x), (_, y) in zip(new_leaves, old_leaves):
+        if x is y:
+            out.append(y)
+            continue
+        x, y = jnp.asarray(x), jnp.asarray(y)
+        if x.shape != y.shape or x.shape[:1] != (n,):
+            raise ValueError(
+                f"MetricsWrapper(on_reset=...) returned state{jax.tree_util.keystr(path)} of "
+                f"shape {x.shape} where the env state has {y.shape}; on_reset works on the "
+                f"batched state: every leaf keeps its shape, with the {n} envs first."
+            )
+        keep = begins.reshape((n,) + (1,) * (y.ndim - 1))
+        out.append(jnp.where(keep, x.astype(y.dtype), y))
+    return jax.tree.unflatten(old_def, out)
 
 
 def wrap(
@@ -459,6 +538,7 @@ def wrap(
     logger: Any = None,
     report_every: int | None = None,
     axis_name: str | None = BRAX_AXIS,
+    on_reset: Callable[[Callable[..., jax.Array], Any], Any] | None = None,
 ) -> Wrapper:
     """`brax.envs.training.wrap` with `MetricsWrapper` in place of `EpisodeWrapper`.
 
@@ -482,6 +562,8 @@ def wrap(
       report_every: the period in env steps over all envs and devices; None: every 100
         env steps of the batch.
       axis_name: the `pmap` axis of the trainer's devices (Brax's: "i").
+      on_reset: `on_reset(read, state) -> state`: sets up the envs that begin an
+        episode from live statistics (a curriculum; see `MetricsWrapper`).
 
     Returns:
       The wrapped env; `reset` takes one key per env (`[num_envs, 2]`).
@@ -519,6 +601,7 @@ def wrap(
             logger=logger,
             report_every=report_every,
             axis_name=axis_name,
+            on_reset=on_reset,
         )
     )
 

@@ -60,6 +60,7 @@ def wrap(
     logger: Any = None,
     report_every: int | None = None,
     axis_name: str | None = BRAX_AXIS,
+    on_reset: Callable[[Callable[..., jax.Array], Any], Any] | None = None,
 ) -> playground_wrapper.Wrapper:
     """`mujoco_playground.wrapper.wrap_for_brax_training` with metrics.
 
@@ -93,6 +94,9 @@ def wrap(
       report_every: the period in env steps over all envs and devices; None: every 100
         env steps of the batch.
       axis_name: the `pmap` axis of the trainer's devices (Brax's: "i").
+      on_reset: `on_reset(read, state) -> state`: sets up the envs that begin an
+        episode from live statistics, e.g. a curriculum level in `state.info` (see
+        `jaxmetrics.brax.MetricsWrapper` and docs/curriculum.md).
 
     Returns:
       The wrapped env; `reset` takes one key per env (`[num_envs, 2]`).
@@ -125,5 +129,6 @@ def wrap(
             logger=logger,
             report_every=report_every,
             axis_name=axis_name,
+            on_reset=on_reset,
         )
     )
