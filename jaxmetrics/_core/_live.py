@@ -25,8 +25,9 @@ WINDOW_COUNT = "window_count"
 (`window(n)` holds the newest n; fewer until n have arrived)."""
 
 
-def _stat_tag(rows: SpecRows, metric: str, statistic: str) -> str:
-    """The report tag of `metric`'s `statistic`, or an error naming what exists."""
+def _stat_tag(rows: SpecRows, metric: str, statistic: str, asked: str | None = None) -> str:
+    """The report tag of `metric`'s `statistic`, or an error naming what exists (and the
+    statistic `asked` for, where it is read from another)."""
     infos = [i for i in rows.tags if i.metric == metric]
     if not infos:
         names = sorted({i.metric for i in rows.tags if i.group != "counter"})
@@ -42,7 +43,7 @@ def _stat_tag(rows: SpecRows, metric: str, statistic: str) -> str:
     if infos[0].group != "counter" and any(s.startswith("window_") for s in have):
         have.append(WINDOW_COUNT)
     raise ValueError(
-        f"Metrics.read: metric {metric!r} has no statistic {statistic!r}; it has {have}. "
+        f"Metrics.read: metric {metric!r} has no statistic {asked or statistic!r}; it has {have}. "
         "Ask for it in the term's stats=(...) (e.g. jm.window(100) for window_mean, "
         "jm.ema(0.01) for ema)."
     )
@@ -92,7 +93,7 @@ def read(
 def _window_counts(rows: SpecRows, state: MetricsState, names: tuple[str, ...]) -> jax.Array:
     """`[len(names)]`: the values in each metric's window."""
     for m in names:  # a window is asked for by its statistics: window_mean has one
-        _stat_tag(rows, m, "window_mean")
+        _stat_tag(rows, m, "window_mean", asked=WINDOW_COUNT)
     info = next(i for i in rows.tags if i.metric == names[0])
     if info.group == "episode":
         plan = rows.ep_plan
