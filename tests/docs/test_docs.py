@@ -113,6 +113,14 @@ def test_script_block_runs_as_pasted(page, line, block, tmp_path):
         assert [e.step for e in counts] == [256, 512, 768, 1024]
         assert all(e.value > 0 for e in counts)
         assert out.stdout.split() == ["4"]
+    if "curriculum.main(" in block:
+        # The example's records: the level per group and success per (group, level).
+        acc = event_accumulator.EventAccumulator(str(tmp_path / "runs" / "curriculum"))
+        acc.Reload()
+        tags = set(acc.Tags()["scalars"])
+        for group in ("jitter", "kick"):
+            assert f"Episode_Metrics/level/{group}" in tags
+            assert f"Episode_Metrics/success_rate/{group}_l0/window_mean" in tags
 
 
 @pytest.mark.slow
