@@ -38,6 +38,8 @@ class Rollout:
         episode_length: int = 1000,
         metrics: jm.Metrics | None = None,
         sharding: jax.sharding.NamedSharding | None = None,
+        leveled: bool = False,
+        on_reset: Callable[..., Any] | None = None,
     ):
         from jaxmetrics import brax as jmb
 
@@ -46,10 +48,12 @@ class Rollout:
 
         with _brax_promotion():
             base = envs.get_environment(env_name, backend=backend)
+            if leveled:
+                base = _leveled(base)
             if metrics is None:
                 self.env = training.wrap(base, episode_length=episode_length)
             else:
-                self.env = jmb.wrap(base, metrics, episode_length=episode_length)
+                self.env = jmb.wrap(base, metrics, episode_length=episode_length, on_reset=on_reset)
             keys = jax.random.split(jax.random.PRNGKey(0), num_envs)
             if sharding is not None:  # the env batch follows its keys' layout
                 keys = jax.device_put(keys, sharding)
@@ -87,6 +91,45 @@ class Rollout:
 
 def _bare(c, s):
     return c, None
+
+
+LEVELS = 4
+
+
+def _leveled(env: Any) -> Any:
+    """`env` with a curriculum level per env in `info["level"]` (0 at reset) that its step
+    reads: actions are scaled by `1 - 0.05 * level`, a stand-in for a harder setting."""
+    from brax.envs.base import Wrapper
+
+    class Leveled(Wrapper):
+        def reset(self, rng):
+            s = self.env.reset(rng)
+            return s.replace(info={**s.info, "level": jnp.zeros((), jnp.int32)})
+
+        def step(self, state, action):
+            scale = 1.0 - 0.05 * state.info["level"].astype(jnp.float32)
+            return self.env.step(state, action * scale)
+
+    return Leveled(env)
+
+
+def curriculum_spec() -> jm.Metrics:
+    """The wrapper's 10 terms plus a success rate per level (the episode ran to its time
+    limit), window of 100 and EMA: what a curriculum reads."""
+    by_level = jm.groups(lambda t: t.state.info["level"], [f"l{k}" for k in range(LEVELS)])
+    success = jm.success_rate(lambda t: t.truncation, groups=by_level)
+    return jm.Metrics(terms={**wl.rollout_terms(transition=True), "success_rate": success})
+
+
+def promote(read: Callable[..., jax.Array], state: Any) -> Any:
+    """The curriculum rule of `docs/curriculum.md`'s example, one group: an episode that
+    begins runs at the first level whose window success rate is under 0.8 (or has fewer
+    than 100 episodes)."""
+    rate = read("success_rate", "window_mean", by_group=True)
+    count = read("success_rate", "window_count", by_group=True)
+    mastered = (count >= 100) & (rate >= 0.8)
+    level = jnp.where(jnp.all(mastered), LEVELS - 1, jnp.argmin(mastered)).astype(jnp.int32)
+    return state.replace(info={**state.info, "level": jnp.full_like(state.info["level"], level)})
 
 
 def _with_metrics(metrics: jm.Metrics):
@@ -153,6 +196,7 @@ VARIANTS = (
     "callback_numpy",
     "callback_dict",
     "device_get_loop",
+    "live",
 )
 LABELS = {
     "bare": "bare rollout",
@@ -166,8 +210,10 @@ LABELS = {
     "callback_numpy": "per-step jax.debug.callback -> numpy per-episode logger",
     "callback_dict": "per-step jax.debug.callback -> per-env Python-dict logger",
     "device_get_loop": "Python loop: jitted step + device_get per step -> numpy logger",
+    "live_base": "jaxmetrics.brax.wrap, 10 terms + success rate per level, env with levels",
+    "live": "the same + on_reset: a curriculum reads the success window per level every step",
 }
-E2E_ROWS = ("bare", "empty", "floor", "jaxmetrics", "lean", "wrapper")
+E2E_ROWS = ("bare", "empty", "floor", "jaxmetrics", "lean", "wrapper", "live_base", "live")
 ALT_ROWS = ("jaxmetrics", "floor", "brax", "callback_numpy", "callback_dict", "device_get_loop")
 
 
@@ -256,6 +302,13 @@ def end_to_end(
     if "wrapper" in variants:
         wro = Rollout(env_name, backend, num_envs, metrics=wl.rollout_spec(transition=True))
         built.append(_jitted("wrapper", wro, steps, _bare, None))
+    if "live" in variants:
+        # The cost of reading live statistics: the same env, spec and wrapper with and
+        # without the curriculum's on_reset.
+        live = curriculum_spec()
+        for name, hook in (("live_base", None), ("live", promote)):
+            lro = Rollout(env_name, backend, num_envs, metrics=live, leveled=True, on_reset=hook)
+            built.append(_jitted(name, lro, steps, _bare, None))
     if "brax" in variants:
         built.append(_brax_logger(ro, steps))
     timings, last = measure(built, repeats)
@@ -287,6 +340,9 @@ def end_to_end(
     )
     state_bytes = {k: tree_bytes(c) for k, c in carries.items()}
     state_bytes.update(bare=0, wrapper=state_bytes["jaxmetrics"])
+    if "live" in variants:
+        live_bytes = tree_bytes(curriculum_spec().init(num_envs))
+        state_bytes.update(live_base=live_bytes, live=live_bytes)
     for k in E2E_ROWS:
         if k in timings:
             x = timings[k].median_s / steps / bare_step

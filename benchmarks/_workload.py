@@ -262,15 +262,22 @@ def _of_transition(fn: Callable[[Any], jax.Array]) -> Callable[[Any], jax.Array]
     return term
 
 
-def rollout_spec(window: int = 100, transition: bool = False, features: str = "full") -> jm.Metrics:
-    """The 10-term spec over a Brax `State` (read after `env.step`), or with
-    `transition` over the `jaxmetrics.brax.Transition` that `MetricsWrapper` gives terms.
-    `features` trims it as in `random_spec`."""
+def rollout_terms(
+    window: int = 100, transition: bool = False, features: str = "full"
+) -> dict[str, jm.Term]:
+    """The 10 terms over a Brax `State` (read after `env.step`), or with `transition`
+    over the `jaxmetrics.brax.Transition` that `MetricsWrapper` gives terms. `features`
+    trims them as in `random_spec`."""
     terms = {}
     for i, (name, fn, hist) in enumerate(ROLLOUT_TERMS):
         reduce, stats = _trim(i, pattern_stats(i, window, hist), features)
         terms[name] = jm.Term(_of_transition(fn) if transition else fn, reduce=reduce, stats=stats)
-    return jm.Metrics(terms=terms)
+    return terms
+
+
+def rollout_spec(window: int = 100, transition: bool = False, features: str = "full") -> jm.Metrics:
+    """The spec of `rollout_terms`."""
+    return jm.Metrics(terms=rollout_terms(window, transition, features))
 
 
 def rollout_values(state: Any) -> jax.Array:
