@@ -150,6 +150,45 @@ def check(report, name, want):
     np.testing.assert_allclose(report[f"Episode_Metrics/{name}"], np.mean(want), rtol=2e-5)
 
 
+class Leveled(wrapper.Wrapper):
+    """An env state with a level in `info` (0 at reset) for `on_reset` to set."""
+
+    def reset(self, rng):
+        state = self.env.reset(rng)
+        return state.replace(info={**state.info, "level": jnp.zeros((), jnp.int32)})
+
+
+@pytest.mark.slow
+def test_on_reset_levels_survive_playground_s_auto_reset():
+    # The rule gives each env that begins an episode the number of episodes finished so
+    # far (a live read); Playground's auto-reset, above the wrapper, keeps it in `info`.
+    metrics = jm.Metrics(terms={"return": jmp.episode_return()})
+
+    def on_reset(read, state):
+        total = read("episodes", "total").astype(jnp.int32)
+        return state.replace(
+            info={**state.info, "level": jnp.full_like(state.info["level"], total)}
+        )
+
+    def levels(env, keys, acts):
+        def body(state, a):
+            state = env.step(state, a)
+            return state, (state.done, state.info["level"])
+
+        return jax.lax.scan(body, env.reset(keys), acts)[1]
+
+    keys = jax.random.split(jax.random.PRNGKey(0), NUM_ENVS)
+    with jmp.default_promotion():
+        env = jmp.wrap(Leveled(load_env()), metrics, EPISODE_LENGTH, REPEAT, on_reset=on_reset)
+        done, level = jax.device_get(jax.jit(functools.partial(levels, env))(keys, actions()))
+    want, finished = np.zeros(NUM_ENVS, int), 0
+    for t in range(STEPS):
+        finished += int(done[t].sum())
+        want = np.where(done[t] != 0, finished, want)
+        np.testing.assert_array_equal(level[t], want, err_msg=f"step {t}")
+    assert finished >= 2 * NUM_ENVS and len(np.unique(level)) >= 3  # 0, then two levels
+
+
 @pytest.mark.slow
 def test_episode_values_fold_every_sub_step_and_match_a_float64_unroll(rolled):
     report, episodes = rolled["report"], rolled["reference"]
