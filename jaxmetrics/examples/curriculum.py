@@ -116,6 +116,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--timesteps", type=int, default=300_000, help="env steps to train for")
     p.add_argument("--num-envs", type=int, default=128, help="envs stepped together")
+    p.add_argument("--batch-size", type=int, default=128, help="PPO's batch_size")
+    p.add_argument("--minibatches", type=int, default=4, help="PPO's num_minibatches")
+    p.add_argument("--unroll", type=int, default=16, help="PPO's unroll_length")
+    p.add_argument("--updates", type=int, default=2, help="PPO's num_updates_per_batch")
     p.add_argument("--backend", default="spring", help="Brax physics: spring (CPU), mjx (GPU)")
     p.add_argument("--window", type=int, default=20, help="episodes per success window")
     p.add_argument("--threshold", type=float, default=0.8, help="success rate to level up")
@@ -142,10 +146,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 num_timesteps=args.timesteps,
                 episode_length=100,
                 num_envs=args.num_envs,
-                batch_size=args.num_envs,
-                num_minibatches=4,
-                unroll_length=16,
-                num_updates_per_batch=2,
+                batch_size=args.batch_size,
+                num_minibatches=args.minibatches,
+                unroll_length=args.unroll,
+                num_updates_per_batch=args.updates,
                 num_evals=5,
                 num_eval_envs=32,
                 learning_rate=3e-4,

@@ -7,7 +7,6 @@ env is in on the step it ends), fed in ascending env index, as `Metrics` defines
 """
 
 import math
-import re
 
 import jax
 import jax.numpy as jnp
@@ -224,40 +223,3 @@ def test_bad_reads_name_the_metric_and_the_fix_at_trace_time():
         METRICS.read(jax.vmap(lambda _: METRICS.init(E))(jnp.arange(3)), "ret")
     with pytest.raises(TypeError, match="expected a MetricsState"):
         METRICS.read({"x": 1}, "ret")
-
-
-def _gathered_bytes(hlo: str) -> int:
-    """Bytes the all-gathers of a compiled program produce."""
-    total = 0
-    for line in hlo.splitlines():
-        if " all-gather(" in line or " all-gather-start(" in line:
-            shapes = re.findall(r"([fsu])(32|64)\[([\d,]*)\]", line.split("all-gather")[0])
-            for _, bits, dims in shapes:
-                total += int(np.prod([int(d) for d in dims.split(",") if d])) * int(bits) // 8
-    return total
-
-
-def test_a_read_across_devices_gathers_what_its_statistic_needs():
-    # Under a trainer's pmap the wrapper gathers the devices' statistics for a global read
-    # on every step: only those the statistic merges from cross, not the EMA histories
-    # (most of the state) for a window read.
-    from jaxmetrics._core import _fresh
-    from jaxmetrics._host._wrapper_reporter import gathered
-
-    # The defaults: a window of 100 and an EMA of 0.01, exact across devices with its
-    # newest 2,207 values.
-    level = jm.groups(lambda s: s["level"], NAMES)
-    metrics = jm.Metrics(terms={"success_rate": jm.success_rate(lambda s: s["ok"], groups=level)})
-    state = _fresh.fresh(metrics._rows, E, 1, ema_history=True)
-    whole = sum(x.nbytes for x in jax.tree.leaves(state.finished))
-    two = jax.tree.map(lambda x: jnp.stack([x, x]), state)
-
-    def cost(stat):
-        def read(s):
-            return metrics.read(gathered(s, "i"), "success_rate", stat, by_group=True)
-
-        return _gathered_bytes(jax.pmap(read, axis_name="i").lower(two).compile().as_text())
-
-    assert cost("ema") > whole  # the exact merge of an EMA needs its history
-    assert 0 < cost("window_mean") < whole / 10
-    assert 0 < cost("mean") < cost("window_mean")

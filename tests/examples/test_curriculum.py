@@ -9,6 +9,7 @@ must get.
 """
 
 import functools
+import re
 from collections import deque
 
 import jax
@@ -20,6 +21,8 @@ from jax.experimental import io_callback
 
 import jaxmetrics as jm
 import jaxmetrics.brax as jmb
+from jaxmetrics._core import _fresh
+from jaxmetrics._host._wrapper_reporter import gathered
 from jaxmetrics.examples import curriculum as cur
 
 WINDOW, THRESHOLD, NUM_ENVS = 3, 0.5, 8
@@ -219,3 +222,37 @@ def test_bad_on_reset_is_refused_at_trace_time_naming_the_fix():
             env = jmb.wrap(cur.make_env("spring"), metrics, on_reset=rule)
             with pytest.raises(ValueError, match=match):
                 jax.eval_shape(env.reset, keys)
+
+
+def _gathered_bytes(hlo: str) -> int:
+    """Bytes the all-gathers of a compiled program produce."""
+    total = 0
+    for line in hlo.splitlines():
+        if " all-gather(" in line or " all-gather-start(" in line:
+            shapes = re.findall(r"([fsu])(32|64)\[([\d,]*)\]", line.split("all-gather")[0])
+            for _, bits, dims in shapes:
+                total += int(np.prod([int(d) for d in dims.split(",") if d])) * int(bits) // 8
+    return total
+
+
+def test_a_read_across_devices_gathers_what_its_statistic_needs():
+    # Under a trainer's pmap the wrapper gathers the devices' statistics for a global read
+    # on every step: only those the statistic merges from cross, not the EMA histories
+    # (most of the state) for a window read.
+    # The defaults: a window of 100 and an EMA of 0.01, exact across devices with its
+    # newest 2,207 values.
+    level = jm.groups(lambda s: s["level"], ("easy", "mid", "hard"))
+    metrics = jm.Metrics(terms={"success_rate": jm.success_rate(lambda s: s["ok"], groups=level)})
+    state = _fresh.fresh(metrics._rows, NUM_ENVS, 1, ema_history=True)
+    whole = sum(x.nbytes for x in jax.tree.leaves(state.finished))
+    two = jax.tree.map(lambda x: jnp.stack([x, x]), state)
+
+    def cost(stat):
+        def read(s):
+            return metrics.read(gathered(s, "i"), "success_rate", stat, by_group=True)
+
+        return _gathered_bytes(jax.pmap(read, axis_name="i").lower(two).compile().as_text())
+
+    assert cost("ema") > whole  # the exact merge of an EMA needs its history
+    assert 0 < cost("window_mean") < whole / 10
+    assert 0 < cost("mean") < cost("window_mean")
