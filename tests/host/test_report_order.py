@@ -293,12 +293,13 @@ def test_write_history_after_a_chunk_that_emitted_comes_after_its_records():
 def test_only_a_logger_that_emits_waits_for_the_device_at_a_flush(monkeypatch):
     """The wait that orders a flush after the emits before it is the emitting Logger's
     cost alone: a Logger that only flushes never waits for the device."""
-    waits = []
-    barrier = jax.effects_barrier
-    monkeypatch.setattr(jax, "effects_barrier", lambda: (waits.append(1), barrier())[1])
     metrics = jm.Metrics(logged=["x"])
     state = metrics.log(metrics.init(1), {"x": jnp.float32(1)})
     with jm.Logger(metrics, [jm.MemoryWriter()], report_channel="ring") as logger:
+        assert logger.report_channel.kind == "ring"  # the ring's self-test (it waits) is done
+        waits = []
+        barrier = jax.effects_barrier
+        monkeypatch.setattr(jax, "effects_barrier", lambda: (waits.append(1), barrier())[1])
         for step in range(3):
             state = logger.flush(state, step)
         assert waits == []
