@@ -5,7 +5,9 @@ Two channels carry the same payload (a pytree of small arrays) to the same host 
 - `"ring"`: the payload is written into a ring of slots in host memory by the device
   itself (on a CUDA GPU, a kernel writing through a device-mapped pointer into pinned
   memory, `_cuda`; on the CPU, a host function writing the same words), and a host thread
-  takes whole reports from it (`_ring`) and hands them on in order. On a GPU nothing in
+  takes whole reports from it (`_ring`) and hands them on in order: each payload layout
+  has a ring of its own, and a stamp that every report takes from one counter per device
+  puts the rings' reports back into the order the device sent them. On a GPU nothing in
   the program waits for the host: XLA records the kernel into its CUDA graph, inside the
   conditional of a period end, so a step that reports nothing costs no host round trip.
 - `"io_callback"`: an ordered `io_callback`, portable. On a GPU, XLA cannot record a host
@@ -21,13 +23,18 @@ list of tested versions: the ring then falls back, with the reason.
 
 The ring loses a report only when the host falls more than `slots` reports behind the
 device; the reports after it say so (their `seq` skips), and `take_lost` counts them.
+
+A record the host makes itself (`Logger.flush`) follows the reports of the programs
+dispatched before it: `in_order` waits for those programs and delivers their reports before
+the record is queued, and delivers no later one until it is.
 """
 
+import contextlib
 import logging
 import os
 import threading
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, NamedTuple
 
 import jax
@@ -212,19 +219,58 @@ class _Leaf(NamedTuple):
         return words.view(wide).astype(self.dtype).reshape(self.shape)
 
 
+class _Order:
+    """One device's order word (the stamp counter of every ring of the channel that the
+    device writes) and the merge of those rings (`_ring.Merge`)."""
+
+    def __init__(self, address: int):
+        self.merge = _ring.Merge(address)
+        self.lock = threading.Lock()  # held by the host's writers (`_Site.write_host`)
+
+
+class _Orders:
+    """A channel's order words, one per device that writes its rings ("host": the CPU's
+    host function). Held by the channel and by each of its sites, so that the pinned words
+    outlive every program that writes them."""
+
+    def __init__(self) -> None:
+        self.by_device: dict[Any, _Order] = {}
+        self._lock = threading.Lock()
+        self._host_memory: Any = None
+
+    def host(self) -> _Order:
+        with self._lock:
+            if "host" not in self.by_device:
+                self._host_memory = np.zeros(_ring.ORDER_WORDS, np.uint32)
+                self.by_device["host"] = _Order(self._host_memory.ctypes.data)
+            return self.by_device["host"]
+
+    def cuda(self, ordinal: int) -> _Order:
+        """Device `ordinal`'s word, in pinned memory (allocated at trace time: a stream
+        under capture may not)."""
+        from . import _cuda
+
+        with self._lock:
+            if ordinal not in self.by_device:
+                driver = _cuda.driver()
+                address = driver.pinned(_ring.ORDER_WORDS * 4)
+                self.by_device[ordinal] = _Order(address)
+                weakref.finalize(self, driver.free_pinned, address).atexit = False
+            return self.by_device[ordinal]
+
+
 class _Site:
     """One payload layout (a tree structure and its arrays' shapes and dtypes): its
-    rings, one per device that may write it, and the last report taken from each."""
+    rings, one per device that may write it (each holding its reader's place)."""
 
-    def __init__(self, treedef: Any, leaves: tuple[_Leaf, ...], slots: int):
+    def __init__(self, treedef: Any, leaves: tuple[_Leaf, ...], slots: int, orders: _Orders):
         self.treedef, self.leaves, self.slots = treedef, leaves, slots
         self.words = sum(leaf.words for leaf in leaves)
         self._nbytes = _ring.ring_words(self.words, slots) * 4
+        self._orders = orders
         self._host: _ring.Ring | None = None
         self._host_memory: Any = None
-        self._host_lock = threading.Lock()
         self.rings: dict[Any, _ring.Ring] = {}
-        self.taken: dict[Any, int] = {}
 
     def host_ring(self) -> _ring.Ring:
         if self._host is None:
@@ -234,8 +280,8 @@ class _Site:
         return self._host
 
     def cuda_rings(self) -> None:
-        """Pinned rings for every local CUDA device, and the kernel loaded on each (a
-        stream under capture may do neither)."""
+        """Pinned rings and order words for every local CUDA device, and the kernel loaded
+        on each (a stream under capture may do none of these)."""
         from . import _cuda
 
         driver = _cuda.driver()
@@ -244,6 +290,7 @@ class _Site:
             if ordinal in self.rings:
                 continue
             driver.prepare(ordinal)
+            self._orders.cuda(ordinal)
             address = driver.pinned(self._nbytes)
             self.rings[ordinal] = _ring.Ring(address, self.words, self.slots)
             # Freed with the site: every compiled program that writes this ring holds the
@@ -264,9 +311,11 @@ class _Site:
 
     def write_host(self, words: np.ndarray) -> None:
         """Writes one report into the host ring (from any thread: CPU devices run their
-        callbacks concurrently)."""
-        with self._host_lock:
-            self.host_ring().write(words)
+        callbacks concurrently), stamped from the host's order word: one lock for all the
+        channel's host writers keeps seqs and stamps in one order."""
+        order = self._orders.host()
+        with order.lock:
+            self.host_ring().write(words, order.merge.order)
 
     def put(self, ctx: Any, words: Any) -> None:
         """The buffer callback: on a GPU it runs once per capture of XLA's command buffer
@@ -280,8 +329,9 @@ class _Site:
         from . import _cuda
 
         driver = _cuda.driver()
-        ring = self.rings[driver.current_device()]
-        driver.put(ctx.stream, src, ring.address, self.words, self.slots)
+        ordinal = driver.current_device()
+        order = self._orders.by_device[ordinal].merge.order
+        driver.put(ctx.stream, src, self.rings[ordinal].address, order, self.words, self.slots)
 
 
 # The custom calls behind `jax.experimental.buffer_callback`; on CUDA, the one XLA records
@@ -402,7 +452,7 @@ class Channel:
     Args:
       callback: the `io_callback` channel's host function (the device waits for it).
       deliver: the ring's host function, called on the channel's thread (one call at a
-        time, in the order the device sent the reports of one layout and device).
+        time, in the order each device sent the reports, whatever their layouts).
       requested: "auto", "ring" or "io_callback".
       slots: the ring's slots per layout and device: how many reports the host may fall
         behind the device before one is lost.
@@ -433,6 +483,8 @@ class Channel:
         self.slots, self.poll_interval_s = slots, poll_interval_s
         self._choice: Choice | None = None
         self._sites: dict[Any, _Site] = {}
+        self._orders = _Orders()
+        self._traced = False  # whether a `send` was traced (either kind)
         self._lock = threading.RLock()  # sites and takes; held while delivering
         self._lost = 0
         self._stop = threading.Event()
@@ -455,6 +507,7 @@ class Channel:
     def send(self, *payload: Any) -> None:
         """In-graph: sends `payload` to the host (unordered with the program's other
         effects; ordered with this channel's other reports)."""
+        self._traced = True
         if self.choice.kind == "io_callback":
             io_callback(self._weak_callback, None, *payload, ordered=True)
             return
@@ -463,7 +516,7 @@ class Channel:
         with self._lock:
             site = self._sites.get(layout)
             if site is None:
-                site = self._sites[layout] = _Site(*layout, self.slots)
+                site = self._sites[layout] = _Site(*layout, self.slots, self._orders)
                 if jax.default_backend() == "gpu":
                     site.cuda_rings()
                 self._start()
@@ -483,25 +536,26 @@ class Channel:
             interval = self.poll_interval_s if found else min(2 * interval, IDLE_POLL_S)
 
     def take(self) -> int:
-        """Hands every whole report the rings hold now to `deliver`, in order; returns how
+        """Hands every whole report the rings hold now to `deliver`, in the order each
+        device sent them (a report waits for those its device sent before it); returns how
         many reports the rings held since the last look (taken or lost)."""
         found = 0
         with self._lock:
-            for site in list(self._sites.values()):
-                for key, ring in list(site.rings.items()):
-                    taken = ring.take(site.taken.get(key, 0))
-                    found += taken.last - site.taken.get(key, 0)
-                    site.taken[key] = taken.last
-                    self._lost += taken.lost
-                    if taken.lost and self._on_lost is not None:
-                        self._on_lost()
-                    for _, payload in taken.reports:
-                        try:
-                            self._deliver(*site.decode(payload))
-                        except Exception as e:  # noqa: BLE001 - kept for the caller
-                            if self._on_error is None:
-                                raise
-                            self._on_error(e)
+            sites = list(self._sites.values())
+            for device, order in list(self._orders.by_device.items()):
+                rings = [(site, site.rings[device]) for site in sites if device in site.rings]
+                looked = order.merge.look([ring for _, ring in rings])
+                found += looked.found
+                self._lost += looked.lost
+                if looked.lost and self._on_lost is not None:
+                    self._on_lost()
+                for i, payload in looked.reports:
+                    try:
+                        self._deliver(*rings[i][0].decode(payload))
+                    except Exception as e:  # noqa: BLE001 - kept for the caller
+                        if self._on_error is None:
+                            raise
+                        self._on_error(e)
         return found
 
     def drain(self) -> None:
@@ -510,11 +564,31 @@ class Channel:
         if self._thread is not None:
             self.take()
 
+    @contextlib.contextmanager
+    def in_order(self) -> Iterator[None]:
+        """Around a record the host queues itself (a flush): in program order, after the
+        reports of every program dispatched before it, and before those of the programs
+        dispatched after it.
+
+        Where a `send` was traced, it waits for the programs dispatched so far
+        (`jax.effects_barrier`: a program that sends has an effect) and delivers what they
+        sent; the block then runs under the lock that delivery takes, so that no report is
+        delivered until the record is queued. Reports of the `io_callback` are delivered
+        by the programs themselves: the wait is all they need.
+        """
+        if not self._traced:
+            yield
+            return
+        jax.effects_barrier()
+        with self._lock:
+            self.drain()
+            yield
+
     def unread_check(self) -> Callable[[], int]:
         """A function that counts the reports the rings received and this channel did
-        not take, holding the rings weakly and nothing of the channel (nor of what it
-        delivers to): a ring nothing holds any more (no compiled program writes it) counts
-        none."""
+        not deliver (those taken but held back for an earlier stamp included), holding
+        the rings weakly and nothing of the channel (nor of what it delivers to): a ring
+        nothing holds any more (no compiled program writes it) counts none."""
         with self._lock:
             sites = [weakref.ref(site) for site in self._sites.values()]
 
@@ -524,8 +598,8 @@ class Channel:
                 site = ref()
                 if site is None:
                     continue
-                for key, ring in site.rings.items():
-                    count += ring.unread(site.taken.get(key, 0))
+                for ring in site.rings.values():
+                    count += ring.unread(ring.taken) + len(ring.held)
             return count
 
         return unread

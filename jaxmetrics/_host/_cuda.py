@@ -13,9 +13,13 @@ import functools
 import threading
 from typing import Any
 
-# One block: thread 0 bumps the counter and writes `head`; all threads copy the payload; each
-# fences at system scope (so the host sees the words in this order), then thread 0 writes
-# `tail`. Reports are O(metrics) words, so one block of 256 threads is plenty.
+# One block: thread 0 bumps the ring's counter and then the device's order word (each with
+# an atomic add, so that two report kernels the device runs at once never share a seq or a
+# stamp; a system-scope fence between them, so that the host never sees the stamp taken
+# before the ring's counter: `_ring.Merge` relies on it), and writes `head`; all threads copy
+# the payload, thread 0 the stamp; each fences at system scope (so the host sees the words in
+# this order), then thread 0 writes `tail`. Reports are O(metrics) words, so one block of 256
+# threads is plenty.
 _PTX = r"""
 .version 7.0
 .target sm_70
@@ -24,33 +28,39 @@ _PTX = r"""
 .visible .entry jaxmetrics_ring_put(
     .param .u64 src_param,
     .param .u64 ring_param,
+    .param .u64 order_param,
     .param .u32 words_param,
     .param .u32 slots_param
 )
 {
     .reg .pred %p<3>;
-    .reg .b32 %r<12>;
-    .reg .b64 %rd<10>;
+    .reg .b32 %r<13>;
+    .reg .b64 %rd<11>;
     .shared .align 4 .b32 seq_shared;
+    .shared .align 4 .b32 stamp_shared;
 
     ld.param.u64 %rd1, [src_param];
     ld.param.u64 %rd2, [ring_param];
+    ld.param.u64 %rd9, [order_param];
     ld.param.u32 %r1, [words_param];
     ld.param.u32 %r2, [slots_param];
     mov.u32 %r3, %tid.x;
     mov.u32 %r4, %ntid.x;
     setp.ne.u32 %p1, %r3, 0;
     @%p1 bra BUMPED;
-    ld.volatile.u32 %r5, [%rd2];
+    atom.add.u32 %r5, [%rd2], 1;
     add.u32 %r5, %r5, 1;
-    st.volatile.u32 [%rd2], %r5;
+    membar.sys;
+    atom.add.u32 %r11, [%rd9], 1;
+    add.u32 %r11, %r11, 1;
     st.shared.u32 [seq_shared], %r5;
+    st.shared.u32 [stamp_shared], %r11;
 BUMPED:
     bar.sync 0;
     ld.shared.u32 %r5, [seq_shared];
     sub.u32 %r6, %r5, 1;
     rem.u32 %r6, %r6, %r2;
-    add.u32 %r7, %r1, 2;
+    add.u32 %r7, %r1, 3;
     mul.lo.u32 %r8, %r6, %r7;
     add.u32 %r8, %r8, 4;
     mul.wide.u32 %rd3, %r8, 4;
@@ -60,7 +70,11 @@ BUMPED:
     membar.sys;
 HEADED:
     bar.sync 0;
-    add.u64 %rd4, %rd3, 4;
+    add.u64 %rd4, %rd3, 8;
+    @%p1 bra STAMPED;
+    ld.shared.u32 %r12, [stamp_shared];
+    st.volatile.u32 [%rd3+4], %r12;
+STAMPED:
     mov.u32 %r9, %r3;
 COPY:
     setp.ge.u32 %p2, %r9, %r1;
@@ -196,13 +210,15 @@ class Driver:
         self._check(self._lib.cuCtxGetDevice(ctypes.byref(out)), "cuCtxGetDevice")
         return out.value
 
-    def put(self, stream: int, src: int, ring: int, words: int, slots: int) -> None:
+    def put(self, stream: int, src: int, ring: int, order: int, words: int, slots: int) -> None:
         """Enqueues on `stream` the kernel that writes the `words` uint32 words at device
-        address `src` into the ring at `ring` as its next report."""
+        address `src` into the ring at `ring` as its next report, stamped from the order
+        word at `order`."""
         kernel = self._kernels[self.current_device()]
         args = (
             ctypes.c_uint64(src),
             ctypes.c_uint64(ring),
+            ctypes.c_uint64(order),
             ctypes.c_uint32(words),
             ctypes.c_uint32(slots),
         )

@@ -143,7 +143,7 @@ class Logger(AbstractContextManager):
       report_channel: how `emit` and the reporting wrappers send reports to the host:
         "auto" (the default) takes the ring on CUDA GPUs where it is tested and the
         ordered `io_callback` elsewhere; "ring" (CUDA GPUs and the CPU) or
-        "io_callback" force one. Both give the same records.
+        "io_callback" force one. Both give the same records, in the same order.
       report_slots: the ring's slots: how many reports the host may fall behind the
         device before one is lost (the loss is counted, and `flush`, `wait` and `close`
         raise `ReportsLostError` naming it).
@@ -251,8 +251,7 @@ class Logger(AbstractContextManager):
 
     @property
     def emit_calls(self) -> int:
-        """Reports received from `emit` (one per period end, whatever the number of
-        vmapped seeds in it)."""
+        """Reports received from `emit` (one per period end, all vmapped seeds in it)."""
         return self._emitted.calls
 
     @property
@@ -268,15 +267,15 @@ class Logger(AbstractContextManager):
     def _surface(self) -> None:
         """Raises on the caller's thread what the writer thread and the channel kept."""
         self._reports.surface()
-        lost = self._channel.take_lost()
-        if lost:
+        if lost := self._channel.take_lost():
             raise ReportsLostError.ring_overrun(lost, self._channel.slots)
 
     # ------------------------------------------------------------------ host loop
 
     def flush(self, state: MetricsState, step: Any) -> MetricsState:
         """Writes the state's report (asynchronously) and returns the state for the next
-        period (`reset_period`).
+        period (`reset_period`). Its record comes after those the programs dispatched before
+        it emitted: where `emit` was traced, `flush` first waits for those programs.
 
         Args:
           state: a state of this logger's spec; with `runs > 1`, with a leading
@@ -313,7 +312,8 @@ class Logger(AbstractContextManager):
             words, finished, logged = self._programs.report_and_reset(state)
             words.copy_to_host_async()
             timers = self._timers.take()
-            put(functools.partial(self._runs.write_flush, words, step, timers))
+            with self._channel.in_order():
+                put(functools.partial(self._runs.write_flush, words, step, timers))
         self.report_nbytes = words.nbytes
         if is_int(step):
             self._last_step = int(step)
@@ -666,7 +666,7 @@ class Logger(AbstractContextManager):
         self._reports.surface()
         fetched = _history.fetch(history, self.runs)
         wall_time = time.time()
-        with self._thread.entry("write_history") as put:
+        with self._channel.in_order(), self._thread.entry("write_history") as put:
             put(functools.partial(self._runs.write_history, fetched, wall_time))
         for step, run, slot in fetched.order:
             self._reports.check_later(step, (run,), fetched.counts[run, slot])

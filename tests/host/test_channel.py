@@ -151,11 +151,12 @@ def test_the_reader_never_takes_a_torn_report_from_a_ring_written_concurrently()
     words, slots, total = 64, 3, 20_000
     memory = np.zeros(_ring.ring_words(words, slots), np.uint32)
     ring = _ring.Ring(memory.ctypes.data, words, slots)
+    order = np.zeros(_ring.ORDER_WORDS, np.uint32)
     done = threading.Event()
 
     def write():
         for seq in range(1, total + 1):
-            ring.write(np.full(words, seq, np.uint32))
+            ring.write(np.full(words, seq, np.uint32), order.ctypes.data)
         done.set()
 
     writer = threading.Thread(target=write)
@@ -164,8 +165,8 @@ def test_the_reader_never_takes_a_torn_report_from_a_ring_written_concurrently()
     while True:
         finished = done.is_set()
         got = ring.take(last)
-        for seq, payload in got.reports:
-            assert seq > last
+        for seq, stamp, payload in got.reports:
+            assert seq > last and stamp == seq  # the only ring of its order word
             assert (np.frombuffer(payload, np.uint32) == seq).all(), f"torn report {seq}"
             taken.append(seq)
             last = seq
@@ -258,12 +259,13 @@ def test_the_ring_takes_every_report_across_the_wrap_of_its_32_bit_counter(slots
     words, start = 5, 2**32 - 4
     memory = np.zeros(_ring.ring_words(words, slots), np.uint32)
     ring = _ring.Ring(memory.ctypes.data, words, slots)
+    order = np.zeros(_ring.ORDER_WORDS, np.uint32)
     memory[0] = start  # as if `start` reports had been written and taken
     last, taken, lost = start, [], 0
     for k in range(9):
-        ring.write(np.full(words, k, np.uint32))
+        ring.write(np.full(words, k, np.uint32), order.ctypes.data)
         got = ring.take(last)
-        taken += [int(np.frombuffer(p, np.uint32)[0]) for _, p in got.reports]
+        taken += [int(np.frombuffer(p, np.uint32)[0]) for _, _, p in got.reports]
         last, lost = got.last, lost + got.lost
     assert taken == list(range(9)) and lost == 0 and last == start + 9
 
