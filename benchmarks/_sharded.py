@@ -67,7 +67,8 @@ class ShardedRollout:
         self.mesh = self.sharding.mesh
         self.num_envs = per_device * len(devices)
         with _brax_promotion():  # outside the mesh: the model's arrays load on one device
-            self.env = training.wrap(envs.get_environment(env_name, backend=backend))
+            base = envs.get_environment(env_name, backend=backend)
+            self.env = training.wrap(base, episode_length=1000)
         with jax.set_mesh(self.mesh), _brax_promotion():
             keys = jax.random.split(jax.random.PRNGKey(0), self.num_envs)
             state = jax.jit(self.env.reset)(jax.device_put(keys, self.sharding))
