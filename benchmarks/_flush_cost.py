@@ -53,10 +53,10 @@ def _time(fn, state, repeats: int, host: Any) -> tuple[float, Any]:
     return float(np.median(samples)), (out, state)
 
 
-def _time_logger(spec: jm.Metrics, state: Any, repeats: int) -> tuple[float, float, Any]:
+def time_logger(spec: jm.Metrics, state: Any, repeats: int) -> tuple[float, float, Any, int]:
     """`jm.Logger.flush` into a `MemoryWriter`: the call alone (what the training loop
     waits for: dispatch + the start of an asynchronous copy), and flush + `wait()` (until
-    the record is written)."""
+    the record is written); then the state and the bytes a flush copies."""
     calls, waits = [], []
     with jm.Logger(spec, [jm.MemoryWriter()]) as logger:
         for i in range(repeats + 1):
@@ -69,7 +69,8 @@ def _time_logger(spec: jm.Metrics, state: Any, repeats: int) -> tuple[float, flo
             if i:
                 calls.append(t1 - t0)
                 waits.append(t2 - t0)
-    return float(np.median(calls)), float(np.median(waits)), state
+        nbytes = logger.report_nbytes
+    return float(np.median(calls)), float(np.median(waits)), state, nbytes
 
 
 def flush(env_list: list[int], repeats: int) -> Table:
@@ -103,7 +104,7 @@ def flush(env_list: list[int], repeats: int) -> Table:
         get_s, (_, state) = _time(flush_jit, state, repeats, jax.device_get)
         host_s, (_, state) = _time(flush_jit, state, repeats, spec.to_host)
         pk_s, (out, state) = _time(packed_jit, state, repeats, jax.device_get)
-        call_s, wait_s, state = _time_logger(spec, state, repeats)
+        call_s, wait_s, state, _ = time_logger(spec, state, repeats)
         t.add(
             n,
             entries,

@@ -94,6 +94,15 @@ def loop_body_ops(hlo_text: str) -> dict[str, int]:
     return dict(collections.Counter(_ops(comps, body, set())).most_common())
 
 
+def program_ops(hlo_text: str) -> dict[str, int]:
+    """Op counts of a whole compiled program (the entry computation and what it calls),
+    counted as `loop_body_ops` counts a loop body's."""
+    comps, entry = _split_computations(hlo_text)
+    if entry is None:
+        return {}
+    return dict(collections.Counter(_ops(comps, entry, set())).most_common())
+
+
 def _first_loop(comps: dict[str, list[str]], name: str, seen: set[str]) -> str | None:
     # Breadth-first from the entry computation, so the outermost loop wins.
     queue = [name]
@@ -130,5 +139,7 @@ def top_level_loops(hlo_text: str) -> list[dict[str, int]]:
 
 
 def collectives(ops: dict[str, int]) -> dict[str, int]:
-    """The cross-device ops among `ops`."""
-    return {op: n for op, n in ops.items() if op.startswith(COLLECTIVES)}
+    """The cross-device ops among `ops` (an asynchronous one as its `-start` op alone)."""
+    return {
+        op: n for op, n in ops.items() if op.startswith(COLLECTIVES) and not op.endswith("-done")
+    }

@@ -1,13 +1,16 @@
-"""Scenario "sharded": the Brax rollout with its envs split over devices.
+"""Scenario "sharded": the Brax rollout with its envs split over devices, set up the way
+users shard it.
 
-Weak scaling: `per_device` envs on each of 1, 2, ... local devices (a 1-D mesh "env",
-the env batch `P("env")`), bare vs the full 10-term spec vs the same terms with simple
-statistics, all with the state made by `init(num_envs, sharding=...)`; and, for
-reference, the full spec with a state made without `sharding=` (one shard: every step
-then reduces across devices). Each row also counts the cross-device collectives left in
-the compiled step loop. A second table times the flush (in-graph compute and pack, then
-the copy to the host) and its bytes per device count; `distributed` runs the isolated
-update in several processes under `jax.distributed` (see `_distributed.py`).
+Weak scaling: `per_device` envs on each of 1, 2, ... local devices. As a user does: an
+Auto mesh "env" set with `jax.set_mesh`, the env state and the actions `device_put` with
+`NamedSharding(mesh, P("env"))`, the metrics state made by `init(num_envs, sharding=...)`.
+The step loop (`update` in a scanned rollout) is timed apart from `compute` and
+`Logger.flush`: bare vs the full 10-term spec vs the same terms with simple statistics.
+A device count whose bare rollout is more than `WEAK_SCALING` slower than one device's does
+not weak-scale, and its overheads are no measure of what the metrics cost there (the
+targets mark it invalid). Each row counts the cross-device collectives left in the compiled
+step loop, and the flush table those of `compute`; `distributed` runs the isolated update
+in several processes under `jax.distributed` (see `_distributed.py`).
 """
 
 import json
@@ -18,50 +21,96 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import jaxmetrics as jm
 
 from . import _workload as wl
-from ._hlo import collectives, loop_body_ops
+from ._flush_cost import time_logger
+from ._hlo import collectives, loop_body_ops, program_ops
 from ._report import Table
-from ._rollout import Rollout, _bare, _with_metrics
+from ._rollout import _brax_promotion
 from ._timing import Variant, blocking, compile_jit, measure
 
 SPECS = {
     "full": "jaxmetrics, 10 terms, every statistic",
     "simple": "jaxmetrics, 10 terms, simple statistics",
-    "unsharded": "jaxmetrics, 10 terms, every statistic, state made without sharding=",
 }
+BARE = "bare rollout"
+
+WEAK_SCALING = 1.02
+"""The most a device count's bare rollout may take, in multiples of one device's, for its
+overheads to be judged (a baseline that does not weak-scale hides what metrics cost)."""
 
 
 def env_sharding(devices: list[Any]) -> NamedSharding:
+    """The env batch split over `devices` on an Auto mesh "env" (what users make)."""
     mesh = jax.make_mesh((len(devices),), ("env",), axis_types=(AxisType.Auto,), devices=devices)
     return NamedSharding(mesh, P("env"))
 
 
+class ShardedRollout:
+    """A Brax env batch split over `devices`, as a user lays it out (module docstring)."""
+
+    def __init__(self, env_name: str, backend: str, devices: list[Any], per_device: int):
+        from brax import envs  # isort: skip
+        from brax.envs.wrappers import training  # isort: skip
+
+        self.sharding = env_sharding(devices)
+        assert isinstance(self.sharding.mesh, jax.sharding.Mesh)  # a concrete mesh, made here
+        self.mesh = self.sharding.mesh
+        self.num_envs = per_device * len(devices)
+        with _brax_promotion():  # outside the mesh: the model's arrays load on one device
+            base = envs.get_environment(env_name, backend=backend)
+            self.env = training.wrap(base, episode_length=1000)
+        with jax.set_mesh(self.mesh), _brax_promotion():
+            keys = jax.random.split(jax.random.PRNGKey(0), self.num_envs)
+            state = jax.jit(self.env.reset)(jax.device_put(keys, self.sharding))
+            self.state0 = jax.block_until_ready(jax.device_put(state, self.sharding))
+            shape = (self.num_envs, self.env.action_size)
+            actions = jax.random.uniform(jax.random.PRNGKey(1), shape, jnp.float32, -1.0, 1.0)
+            self.actions = jax.device_put(actions, self.sharding)
+
+    def scan(self, steps: int, metrics: jm.Metrics | None) -> Callable[..., Any]:
+        """`rollout(env_state, metrics_state, actions) -> (env_state, metrics_state)`."""
+
+        def rollout(env_state, ms, actions):
+            def body(c, t):
+                s, ms = c
+                # A new action per step, elementwise, so laid out as the envs are.
+                a = jnp.sin(actions * (t + 1).astype(jnp.float32))
+                with _brax_promotion():
+                    s = self.env.step(s, a)
+                if metrics is not None:
+                    ms = metrics.update(ms, s, s.done.astype(bool))
+                return (s, ms), None
+
+            ts = jnp.arange(steps, dtype=jnp.int32)
+            return jax.lax.scan(body, (env_state, ms), ts)[0]
+
+        return rollout
+
+
 def variants(
-    ro: Rollout, steps: int, sharding: NamedSharding, which: tuple[str, ...]
+    ro: ShardedRollout, steps: int
 ) -> tuple[list[Variant], dict[str, int], dict[str, Any]]:
-    """Timed variants of one rollout set-up, their loop collectives and metrics states."""
+    """Timed step loops of one rollout set-up, their loop collectives and their metrics
+    states (spec, state, compiled loop)."""
     out, coll, states = [], {}, {}
-    rollout = ro.scan(steps, _bare)
-    compiled, compile_s = compile_jit(rollout, ro.state0, None)
-    coll["bare"] = sum(collectives(loop_body_ops(compiled.as_text())).values())
-    out.append(Variant("bare", blocking(compiled, ro.state0, None), compile_s))
-    for name in which:
-        spec = wl.rollout_spec(features="simple" if name == "simple" else "full")
-        ms = spec.init(ro.num_envs, sharding=None if name == "unsharded" else sharding)
-        rollout = ro.scan(steps, _with_metrics(spec))
-        compiled, compile_s = compile_jit(rollout, ro.state0, ms)
-        coll[name] = sum(collectives(loop_body_ops(compiled.as_text())).values())
-        out.append(Variant(name, blocking(compiled, ro.state0, ms), compile_s))
-        states[name] = (spec, ms, compiled)
+    with jax.set_mesh(ro.mesh):
+        for name in ("bare", *SPECS):
+            spec = None if name == "bare" else wl.rollout_spec(features=name)
+            ms = None if spec is None else spec.init(ro.num_envs, sharding=ro.sharding)
+            compiled, compile_s = compile_jit(ro.scan(steps, spec), ro.state0, ms, ro.actions)
+            coll[name] = sum(collectives(loop_body_ops(compiled.as_text())).values())
+            out.append(Variant(name, blocking(compiled, ro.state0, ms, ro.actions), compile_s))
+            states[name] = (spec, ms, compiled)
     return out, coll, states
 
 
@@ -80,32 +129,55 @@ def sharded(
     counts = tuple(d for d in device_counts if d <= len(local))
     t = Table(
         "sharded",
-        f"Weak scaling, {env_name} ({backend}), {per_device} envs per device, {steps}-step scan",
-        ["devices", "variant", "ms/step", "overhead %", "collectives in step loop", "compile s"],
+        f"Weak scaling, {env_name} ({backend}), {per_device} envs per device, {steps}-step "
+        "scan of the step loop",
+        [
+            "devices",
+            "variant",
+            "ms/step",
+            "overhead %",
+            "x 1-device bare",
+            "collectives in step loop",
+            "compile s",
+        ],
     )
     f = Table(
         "sharded_flush",
-        "Flush of the full spec's state per device count",
-        ["devices", "envs", "bytes to host", "compute + copy ms", "Logger.flush ms"],
+        "Compute and flush of the full spec's sharded state per device count",
+        [
+            "devices",
+            "envs",
+            "bytes to host",
+            "collectives in compute",
+            "compute + copy ms",
+            "Logger.flush ms",
+            "Logger flush+wait ms",
+        ],
     )
+    one_bare = None
     for d in counts:
-        sharding = env_sharding(local[:d])
-        ro = Rollout(env_name, backend, per_device * d, sharding=sharding)
-        which = ("full", "simple") + (("unsharded",) if d > 1 else ())
-        vs, coll, states = variants(ro, steps, sharding, which)
+        ro = ShardedRollout(env_name, backend, local[:d], per_device)
+        vs, coll, states = variants(ro, steps)
         timings, _ = measure(vs, repeats)
         bare = timings["bare"].median_s
+        one_bare = bare if one_bare is None else one_bare
         for v in vs:
             ms = timings[v.name].median_s / steps * 1e3
-            over = (timings[v.name].median_s / bare - 1) * 100
-            label = "bare rollout" if v.name == "bare" else SPECS[v.name]
-            t.add(d, label, ms, None if v.name == "bare" else over, coll[v.name], v.compile_s)
+            if v.name == "bare":
+                t.add(d, BARE, ms, None, bare / one_bare, coll[v.name], v.compile_s)
+            else:
+                over = (timings[v.name].median_s / bare - 1) * 100
+                t.add(d, SPECS[v.name], ms, over, None, coll[v.name], v.compile_s)
         spec, ms0, compiled = states["full"]
-        _, state, _ = compiled(ro.state0, ms0)
-        f.add(d, per_device * d, *_flush_cost(spec, state, repeats))
+        _, state = compiled(ro.state0, ms0, ro.actions)
+        f.add(d, ro.num_envs, *_flush_cost(spec, state, repeats))
     t.notes.append(
-        "Overhead: median time of the variant over the bare rollout's, same devices, same run. "
-        "Target: the overhead on several devices within 0.5 percentage points of one device's."
+        "Step loop: the scanned rollout with update only, compute and flush timed apart "
+        "(below). Overhead: median time of the variant over the bare rollout's, same "
+        "devices, same run. x 1-device bare: the bare rollout's time over one device's; a "
+        f"device count above {WEAK_SCALING} does not weak-scale and its overheads are not "
+        "judged. Target: the overhead on several devices within 0.5 percentage points of "
+        "one device's."
     )
     t.notes.append(
         "collectives: all-reduce/all-gather/all-to-all/collective-permute/reduce-scatter ops "
@@ -113,7 +185,10 @@ def sharded(
     )
     f.notes.append(
         "bytes to host: the packed report a Logger.flush copies (O(metrics), whatever the envs); "
-        "compute + copy: jitted compute, then device_get of every leaf, median."
+        "collectives in compute: those of the jitted compute (the shards meet once); "
+        "compute + copy: jitted compute, then device_get of every leaf, median; "
+        "Logger.flush: the call alone, the previous flush written (what a training loop "
+        "waits for; the copy completes on the writer thread), and flush + wait(), median."
     )
     yield t
     yield f
@@ -123,22 +198,15 @@ def sharded(
 
 def _flush_cost(spec: jm.Metrics, state: Any, repeats: int) -> list[Any]:
     compute = jax.jit(spec.compute)
+    moved = sum(collectives(program_ops(compute.lower(state).compile().as_text())).values())
     jax.device_get(compute(state))
     samples = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         jax.device_get(compute(state))
         samples.append(time.perf_counter() - t0)
-    with jm.Logger(spec, [jm.MemoryWriter()]) as logger:
-        logger.flush(state, 0)
-        logger.wait()
-        flush_s = []
-        for i in range(repeats):
-            t0 = time.perf_counter()
-            logger.flush(state, i + 1)
-            flush_s.append(time.perf_counter() - t0)
-        nbytes = logger.report_nbytes
-    return [nbytes, statistics.median(samples) * 1e3, statistics.median(flush_s) * 1e3]
+    call_s, wait_s, _, nbytes = time_logger(spec, state, repeats)
+    return [nbytes, moved, statistics.median(samples) * 1e3, call_s * 1e3, wait_s * 1e3]
 
 
 def distributed(per_device: int, steps: int, repeats: int, processes: int) -> Table:

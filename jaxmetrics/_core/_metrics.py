@@ -12,7 +12,7 @@ from ._count import Count
 from ._metrics_state import MetricsState
 from ._report import Report, ReportLayout
 from ._shard_fold import fold_shards, shard_counters
-from ._sharding import like, shard_axes, shard_count, state_mesh
+from ._sharding import like, shard_axes, shard_count, state_mesh, whole
 from ._spec import Groups, Logged, MetricSpec, Term, reported
 from ._tags import TagInfo
 from ._validate import is_int
@@ -542,9 +542,13 @@ class Metrics:
         # (group, statistic, rows, values): `values[j]` is row `rows[j]`'s statistic; a row
         # is a stream row of the group's plan, an episode row, or a counter's index.
         columns: list[tuple[str, str, tuple[int, ...], jax.Array | Count]] = []
-        finished = None
+        finished, shard_counts = state.finished, state.shard_counts
+        if shard_counts is not None and shard_counts.hi.shape[0] > 1:
+            # The shards meet here, in one collective rather than one per leaf.
+            with state_mesh(state):
+                finished, shard_counts = whole((finished, shard_counts))
         if self._rows.ep_plan is not None:
-            finished = _stream.combine(self._rows.ep_plan, state.finished)  # type: ignore[arg-type]
+            finished = _stream.combine(self._rows.ep_plan, finished)  # type: ignore[arg-type]
         for group, plan, st in (
             ("episode", self._rows.ep_plan, finished),
             ("logged", self._rows.lg_plan, state.logged),
@@ -561,9 +565,9 @@ class Metrics:
             mean = jnp.where(n > 0, mean, jnp.nan)
             columns.append(("running", "running", tuple(range(len(self._rows.ep_rows))), mean))
         names = self.counter_names
-        if state.shard_counts is not None:
+        if shard_counts is not None:
             rows = tuple(names.index(c) for c in self._rows.shard_counters)
-            columns.append(("counter", "total", rows, _count.total(state.shard_counts)))
+            columns.append(("counter", "total", rows, _count.total(shard_counts)))
         if state.counters is not None:
             rows = tuple(names.index(c) for c in self._rows.stored_counters)
             columns.append(("counter", "total", rows, state.counters))

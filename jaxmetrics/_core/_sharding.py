@@ -12,6 +12,9 @@ from collections.abc import Iterator
 from typing import Any
 
 import jax
+import jax.core  # jax.core.Tracer: imported by jax, named here for the type checker
+import jax.numpy as jnp
+import numpy as np
 
 
 def gathered(x: jax.Array) -> jax.Array:
@@ -27,6 +30,62 @@ def gathered(x: jax.Array) -> jax.Array:
     return jax.sharding.reshard(
         x, jax.sharding.NamedSharding(sharding.mesh, jax.sharding.PartitionSpec())
     )
+
+
+def whole(tree: Any) -> Any:
+    """In-graph: `tree`, whose leaves hold one entry per env shard on a leading axis split
+    over devices, whole on every device of the mesh traced under, moved in one collective.
+
+    Left to XLA, every leaf that `compute` reads across shards is moved by a collective of
+    its own (a sharded state has about thirty leaves), and on GPUs each collective is a
+    launch and a synchronization of the devices. The leaves travel as the uint32 words of
+    one `[shards, words]` array instead, bit for bit, and are read back from it."""
+    mesh = jax.sharding.get_abstract_mesh()
+    leaves, treedef = jax.tree.flatten(tree)
+    if mesh.empty or jax.sharding.AxisType.Manual in mesh.axis_types:
+        return tree  # under `shard_map` the caller decides what moves between devices
+    if not any(isinstance(x, jax.core.Tracer) for x in leaves):
+        # Run op by op (an eager `compute`), each leaf moves on its own anyway, and ops
+        # on concrete arrays under an abstract mesh are refused.
+        return tree
+    words = [_as_words(x) for x in leaves]
+    packed = jnp.concatenate(words, axis=1)
+    everywhere = jax.sharding.PartitionSpec()
+    if all(t == jax.sharding.AxisType.Explicit for t in mesh.axis_types):
+        packed = jax.sharding.reshard(packed, everywhere)
+    else:
+        packed = jax.lax.with_sharding_constraint(packed, everywhere)
+    out, start = [], 0
+    for x, w in zip(leaves, words):
+        out.append(_from_words(packed[:, start : start + w.shape[1]], x))
+        start += w.shape[1]
+    return jax.tree.unflatten(treedef, out)
+
+
+def _as_words(x: jax.Array) -> jax.Array:
+    """`x[S, ...]` as `uint32[S, k]`, bit for bit (narrower types widened, wider split)."""
+    if x.dtype == jnp.bool_ or x.dtype.itemsize < 4:
+        bits = x if x.dtype == jnp.bool_ else jax.lax.bitcast_convert_type(x, _uint(x.dtype))
+        w = bits.astype(jnp.uint32)
+    else:
+        w = jax.lax.bitcast_convert_type(x, jnp.uint32)
+    return w.reshape(x.shape[0], -1)
+
+
+def _from_words(w: jax.Array, like: jax.Array) -> jax.Array:
+    """`_as_words`' inverse, for an array shaped and typed as `like`."""
+    if like.dtype == jnp.bool_:
+        return w.reshape(like.shape) != 0
+    if like.dtype.itemsize < 4:
+        narrow = w.reshape(like.shape).astype(_uint(like.dtype))
+        return jax.lax.bitcast_convert_type(narrow, like.dtype)
+    split = like.dtype.itemsize // 4
+    shape = like.shape + ((split,) if split > 1 else ())
+    return jax.lax.bitcast_convert_type(w.reshape(shape), like.dtype)
+
+
+def _uint(dt: Any) -> Any:
+    return np.dtype(f"uint{8 * np.dtype(dt).itemsize}")
 
 
 def mesh_of(tree: Any) -> jax.sharding.Mesh | None:

@@ -18,7 +18,8 @@ from reference import SIMPLE_STATS, RefEpisodes
 from test_core_reductions import EMA_C, HIST, PCTS, WINDOW, assert_reports_follow_reference
 
 import jaxmetrics as jm
-from benchmarks._hlo import collectives, loop_body_ops
+from benchmarks._hlo import collectives, loop_body_ops, program_ops
+from jaxmetrics._core._sharding import whole
 
 E, T = 8, 10  # 8 envs finishing at once overflow the window (and any shard's share)
 REDUCTIONS = ("mean", "sum", "max", "std")
@@ -177,6 +178,47 @@ def test_step_loop_has_no_cross_device_collectives(layout, axis_type):
     shards = state.shard_counts.hi.shape[0]
     assert shards == {"8": 8, "2x4": 8, "2x2-device": 2}.get(layout, 4)
     assert state.finished.count.hi.sharding.spec[0] == env
+
+
+@pytest.mark.parametrize("axis_type", [AxisType.Auto, AxisType.Explicit])
+@pytest.mark.parametrize("layout", ["4", "2x4", "2x4-device"])
+def test_compute_moves_the_shards_in_one_collective(layout, axis_type):
+    # Left to XLA, each of the state's per-shard leaves (about thirty) crossed devices in
+    # a collective of its own, each a launch and a synchronization on GPUs.
+    mesh, env = mesh_of(layout, axis_type)
+    xs, dones = long_rollout(2, 4, 16, 0.3)
+    with jax.set_mesh(mesh):
+        state = scan_of_updates(METRICS, NamedSharding(mesh, P(env)), 16)(
+            *place(mesh, env, xs, dones)
+        )
+    # No mesh set: compute traces under the state's own.
+    ops = collectives(program_ops(jax.jit(METRICS.compute).lower(state).compile().as_text()))
+    assert sum(ops.values()) == 1, ops
+
+
+@pytest.mark.parametrize("axis_type", [AxisType.Auto, AxisType.Explicit])
+def test_whole_moves_every_dtype_bit_for_bit(axis_type):
+    mesh, env = mesh_of("4", axis_type)
+    rng = np.random.default_rng(0)
+    bits = rng.integers(0, 2**32, size=(4, 3, 5), dtype=np.uint64).astype(np.uint32)
+    tree = {
+        "f32": bits.view(np.float32),  # NaNs and infinities among them, by their bits
+        "u32": bits,
+        "i32": bits.view(np.int32)[:, 0],
+        "f16": bits.view(np.float16),
+        "bf16": bits.astype(np.uint16).view(jnp.bfloat16),
+        "u8": bits.astype(np.uint8),
+        "bool": bits % 2 == 0,
+    }
+    placed = jax.device_put(tree, NamedSharding(mesh, P(env)))
+    with jax.set_mesh(mesh):
+        moved = jax.jit(whole)(placed)
+        ops = collectives(program_ops(jax.jit(whole).lower(placed).compile().as_text()))
+    assert sum(ops.values()) == 1, ops
+    for k, want in tree.items():
+        got = np.asarray(moved[k])
+        assert got.dtype == want.dtype and got.shape == want.shape, k
+        np.testing.assert_array_equal(got.view(np.uint8), np.asarray(want).view(np.uint8), k)
 
 
 def test_the_collective_check_can_fail_a_state_made_for_one_device():
