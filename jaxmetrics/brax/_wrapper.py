@@ -15,7 +15,6 @@ Where the MetricsState lives, and why the wrapper sits where it does:
 Hence the order `AutoResetWrapper(MetricsWrapper(VmapWrapper(env)))`, built by `wrap`.
 """
 
-import functools
 import sys
 from collections.abc import Callable
 from typing import Any, NamedTuple, cast
@@ -30,7 +29,8 @@ from .._core._metrics import Metrics
 from .._core._metrics_state import MetricsState
 from .._core._sharding import placed
 from .._core._validate import is_int
-from .._host._wrapper_reporter import Reporter, axis_size, gathered
+from .._host._wrapper_reporter import Reporter
+from . import _on_reset
 from ._upstream import default_promotion
 
 STATE_KEY = "jaxmetrics"
@@ -305,7 +305,7 @@ class MetricsWrapper(Wrapper):
         logger: Any = None,
         report_every: int | None = None,
         axis_name: str | None = BRAX_AXIS,
-        on_reset: Callable[[Callable[..., jax.Array], Any], Any] | None = None,
+        on_reset: _on_reset.OnReset | None = None,
     ):
         super().__init__(env)
         if not isinstance(metrics, Metrics):
@@ -333,12 +333,7 @@ class MetricsWrapper(Wrapper):
             if logger is None
             else Reporter(metrics, logger, report_every, axis_name, "MetricsWrapper")
         )
-        if on_reset is not None and not callable(on_reset):
-            raise TypeError(
-                f"MetricsWrapper(on_reset=...) must be a function (read, state) -> state, got "
-                f"{on_reset!r}."
-            )
-        self.on_reset = on_reset
+        self.on_reset = _on_reset.check(on_reset)
         self.axis_name = axis_name
 
     def reset(self, rng: jax.Array) -> State:
@@ -392,7 +387,10 @@ class MetricsWrapper(Wrapper):
         # flax.struct adds `replace` to Brax's State at run time.
         state = state.replace(info=info)  # pyright: ignore[reportAttributeAccessIssue]
         if self.on_reset is not None:
-            state = self._begin(mstate, state, jnp.ones(done.shape, bool))
+            begins = jnp.ones(done.shape, bool)
+            state = _on_reset.begin(
+                self.on_reset, self.metrics, self.axis_name, mstate, state, begins
+            )
         info = dict(state.info)
         if self.reporter is not None:
             info[CLOCK_KEY] = clock
@@ -469,7 +467,9 @@ class MetricsWrapper(Wrapper):
         nstate = nstate.replace(reward=reward, done=done, info=new_info)  # pyright: ignore[reportAttributeAccessIssue]
         if self.on_reset is not None:
             # Before the report resets the period: the read includes this step's episodes.
-            nstate = self._begin(mstate, nstate, done != 0)
+            nstate = _on_reset.begin(
+                self.on_reset, self.metrics, self.axis_name, mstate, nstate, done != 0
+            )
             new_info = dict(nstate.info)
         if self.reporter is not None:
             if not _in_brax_evaluator():
@@ -487,46 +487,6 @@ class MetricsWrapper(Wrapper):
         # flax.struct adds `replace` to Brax's State at run time.
         return _strong_types(nstate.replace(info=new_info))  # pyright: ignore[reportAttributeAccessIssue]
 
-    def _begin(self, mstate: MetricsState, state: State, begins: jax.Array) -> State:
-        """`state` with `on_reset`'s result for the envs that `begins` (bool `[num_envs]`)."""
-        assert self.on_reset is not None
-        live = mstate
-        if (axis_size(self.axis_name) or 1) > 1:
-            assert self.axis_name is not None  # an axis of more than one device
-            live = gathered(mstate, self.axis_name)
-        new = self.on_reset(functools.partial(self.metrics.read, live), state)
-        return _kept_where(begins, new, state)
-
-
-def _kept_where(begins: jax.Array, new: Any, old: State) -> State:
-    """`new` for the envs that `begins`, `old` for the others, leaf by leaf; a leaf that
-    `on_reset` returned unchanged costs nothing."""
-    new_leaves, new_def = jax.tree.flatten_with_path(new)
-    old_leaves, old_def = jax.tree.flatten_with_path(old)
-    if new_def != old_def:
-        raise ValueError(
-            "MetricsWrapper(on_reset=...) must return the env state it was given with the "
-            "same structure (change values, e.g. state.replace(info={**state.info, "
-            "'level': level})); it returned another structure: "
-            f"{new_def} instead of {old_def}."
-        )
-    n = begins.shape[0]
-    out = []
-    for (path, x), (_, y) in zip(new_leaves, old_leaves):
-        if x is y:
-            out.append(y)
-            continue
-        x, y = jnp.asarray(x), jnp.asarray(y)
-        if x.shape != y.shape or x.shape[:1] != (n,):
-            raise ValueError(
-                f"MetricsWrapper(on_reset=...) returned state{jax.tree_util.keystr(path)} of "
-                f"shape {x.shape} where the env state has {y.shape}; on_reset works on the "
-                f"batched state: every leaf keeps its shape, with the {n} envs first."
-            )
-        keep = begins.reshape((n,) + (1,) * (y.ndim - 1))
-        out.append(jnp.where(keep, x.astype(y.dtype), y))
-    return jax.tree.unflatten(old_def, out)
-
 
 def wrap(
     env: Env,
@@ -538,7 +498,7 @@ def wrap(
     logger: Any = None,
     report_every: int | None = None,
     axis_name: str | None = BRAX_AXIS,
-    on_reset: Callable[[Callable[..., jax.Array], Any], Any] | None = None,
+    on_reset: _on_reset.OnReset | None = None,
 ) -> Wrapper:
     """`brax.envs.training.wrap` with `MetricsWrapper` in place of `EpisodeWrapper`.
 

@@ -18,6 +18,7 @@ from mujoco_playground import MjxEnv
 from mujoco_playground import wrapper as playground_wrapper
 
 from .._core._metrics import Metrics
+from ..brax._on_reset import OnReset
 from ..brax._wrapper import BRAX_AXIS, MetricsWrapper
 
 
@@ -60,7 +61,7 @@ def wrap(
     logger: Any = None,
     report_every: int | None = None,
     axis_name: str | None = BRAX_AXIS,
-    on_reset: Callable[[Callable[..., jax.Array], Any], Any] | None = None,
+    on_reset: OnReset | None = None,
 ) -> playground_wrapper.Wrapper:
     """`mujoco_playground.wrapper.wrap_for_brax_training` with metrics.
 
