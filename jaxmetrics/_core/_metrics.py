@@ -585,7 +585,9 @@ class Metrics:
         host sync. Under `jit` only this statistic is computed (XLA drops the rest of the
         report), so it is cheap enough to call every step. A state of several env shards
         (`init(..., sharding=...)`) is merged first, as `compute` merges it: the read then
-        moves each shard's statistics of the metric, a few hundred bytes, across devices.
+        moves across devices what the statistic merges from (a few hundred bytes for a
+        period statistic, a window's values, an EMA's exact-merge history; see
+        docs/curriculum.md).
 
         Args:
           state: the current state.
