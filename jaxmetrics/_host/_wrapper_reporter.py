@@ -121,12 +121,8 @@ class Reporter:
         self._env_steps = metrics._rows.shard_counters.index("env_steps")
 
     def init(self, num_envs: int) -> MetricsState:
-        """The fresh state of one batch. With a device axis it keeps each EMA's newest
-        values, so that the devices' states merge exactly at a report, whether or not the
-        trainer resets its envs under that axis (Brax's SAC `pmap`s its reset unnamed)."""
-        if self.axis_name is None:
-            return self.metrics.init(num_envs)
-        return _fresh.fresh(self.metrics._rows, num_envs, 1, ema_history=True)
+        """The fresh state of one batch (`mergeable_init`)."""
+        return mergeable_init(self.metrics, num_envs, self.axis_name)
 
     def batch_env_steps(self, num_envs: int, steps_per_call: int) -> int:
         """Env steps over all envs and devices in one step of the batch (trace time)."""
@@ -189,6 +185,16 @@ class Reporter:
         assert state.shard_counts is not None
         totals = _count.total(state.shard_counts)
         return Count(totals.hi[self._env_steps], totals.lo[self._env_steps])
+
+
+def mergeable_init(metrics: Metrics, num_envs: int, axis_name: str | None) -> MetricsState:
+    """The fresh state of one batch whose statistics are merged over the device axis
+    `axis_name` (at a report, or a live read). With an axis it keeps each EMA's newest
+    values, so that the devices' states merge exactly, whether or not the trainer resets
+    its envs under that axis (Brax's SAC `pmap`s its reset unnamed)."""
+    if axis_name is None:
+        return metrics.init(num_envs)
+    return _fresh.fresh(metrics._rows, num_envs, 1, ema_history=True)
 
 
 def gathered(state: MetricsState, name: str, running: bool = False) -> MetricsState:

@@ -24,12 +24,11 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State, Wrapper
 from brax.envs.wrappers import training as brax_training
 
-from .._core import _fresh
 from .._core._metrics import Metrics
 from .._core._metrics_state import MetricsState
 from .._core._sharding import placed
 from .._core._validate import is_int
-from .._host._wrapper_reporter import Reporter
+from .._host._wrapper_reporter import Reporter, mergeable_init
 from . import _on_reset
 from ._upstream import default_promotion
 
@@ -361,22 +360,18 @@ class MetricsWrapper(Wrapper):
             episode_done=zeros,
             episode_metrics=episode_metrics,
         )
+        # Statistics used inside the trainer (reported, or read live) are merged over
+        # the device axis and go on through Brax's resets; otherwise Brax's reset starts
+        # afresh, as Brax's own does.
+        used = self.reporter is not None or self.on_reset is not None
         if self.sharding is not None:
             mstate = self.metrics.init(done.shape[0], sharding=self.sharding)
-        elif self.reporter is not None:
-            mstate = self.reporter.init(done.shape[0])
-        elif self.on_reset is not None and self.axis_name is not None:
-            # Under a device axis the live statistics merge the devices' states on every
-            # read: each keeps its EMAs' newest values so that the merge is exact.
-            mstate = _fresh.fresh(self.metrics._rows, done.shape[0], 1, ema_history=True)
+        elif used:
+            mstate = mergeable_init(self.metrics, done.shape[0], self.axis_name)
         else:
             mstate = self.metrics.init(done.shape[0])
         clock = jnp.zeros((), jnp.int32)
-        # Only a wrapper whose statistics are used inside the trainer (reported or read
-        # live) looks for them; otherwise Brax's reset starts afresh, as Brax's own does.
-        previous = None
-        if self.reporter is not None or self.on_reset is not None:
-            previous = _brax_reset_from(self)
+        previous = _brax_reset_from(self) if used else None
         if previous is not None:
             # Brax resets the envs, not the training: statistics, windows, EMAs,
             # counters and the period go on, so records keep Brax's step, none is lost
