@@ -50,6 +50,7 @@ class Config:
     host_steps: int = 100
     host_repeats: int = 3
     e2e_variants: tuple[str, ...] = _rollout.VARIANTS
+    e2e_live_rounds: int = 21
     scale_envs: tuple[int, ...] = (256, 1024, 4096, 16384, 65536)
     scale_terms: tuple[int, ...] = (1, 3, 10, 30, 100)
     scale_windows: tuple[int, ...] = (10, 100, 1000, 10000)
@@ -80,6 +81,7 @@ HELP = {
     "e2e_envs": "envs of the end-to-end rollouts",
     "e2e_steps": "scan length of the end-to-end rollouts",
     "e2e_repeats": "timed repeats of the end-to-end rollouts",
+    "e2e_live_rounds": "paired rounds of the live-read pair (with the live variant)",
     "host_steps": "rollout length of the per-step host loggers",
     "host_repeats": "timed repeats of the per-step host loggers",
     "scale_envs": "num_envs values of the scaling table",
@@ -111,6 +113,7 @@ QUICK = dataclasses.replace(
     e2e_envs=32,
     e2e_steps=200,
     e2e_repeats=3,
+    e2e_live_rounds=3,
     host_steps=50,
     host_repeats=2,
     scale_envs=(256, 1024, 4096),
@@ -165,6 +168,7 @@ def _scenario_tables(name: str, c: Config, hlo_dir: str | None, profile: bool) -
             c.host_steps,
             c.host_repeats,
             c.e2e_variants,
+            c.e2e_live_rounds,
         )
     elif name == "sharded":
         yield from _sharded.sharded(

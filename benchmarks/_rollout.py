@@ -15,6 +15,7 @@ import jax.numpy as jnp
 
 import jaxmetrics as jm
 
+from . import _live
 from . import _workload as wl
 from ._report import Table
 from ._timing import Variant, blocking, compile_jit, measure, tree_bytes
@@ -279,6 +280,7 @@ def end_to_end(
     host_steps: int,
     host_repeats: int,
     variants: tuple[str, ...] = VARIANTS,
+    live_rounds: int = 21,
 ) -> list[Table]:
     """Scenarios 2, 3, 6 and 7 on one rollout set-up, in one process.
 
@@ -305,10 +307,12 @@ def end_to_end(
     if "live" in variants:
         # The cost of reading live statistics: the same env, spec and wrapper with and
         # without the curriculum's on_reset.
-        live = curriculum_spec()
+        live, live_hlo = curriculum_spec(), {}
         for name, hook in (("live_base", None), ("live", promote)):
             lro = Rollout(env_name, backend, num_envs, metrics=live, leveled=True, on_reset=hook)
-            built.append(_jitted(name, lro, steps, _bare, None))
+            compiled, compile_s = compile_jit(lro.scan(steps, _bare), lro.state0, None)
+            built.append(Variant(name, blocking(compiled, lro.state0, None), compile_s))
+            live_hlo[name] = compiled.as_text()
     if "brax" in variants:
         built.append(_brax_logger(ro, steps))
     timings, last = measure(built, repeats)
@@ -419,4 +423,7 @@ def end_to_end(
     }
     if "callback_numpy" in host_last:
         alt.data["host_numpy_totals"] = host_last["callback_numpy"].totals()
-    return [e2e, alt]
+    if "live" not in variants:
+        return [e2e, alt]
+    pair = [v for v in built if v.name in ("live_base", "live")]
+    return [e2e, alt, _live.live_read(pair, live_hlo, steps, live_rounds)]

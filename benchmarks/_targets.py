@@ -20,6 +20,10 @@ the per-group update's, in multiples of the ungrouped one (GPU)."""
 E2E_POINTS = 0.3
 """The end-to-end bound: percentage points of overhead above the floor's, same run."""
 
+LIVE_POINTS = 0.1
+"""The live-read bound: percentage points a curriculum's every-step read adds end to end,
+judged on the upper end of the paired rounds' 95% interval (`_live`)."""
+
 DEVICES_POINTS = 0.5
 """The many-device bound: percentage points of overhead above one device's, same run."""
 
@@ -77,6 +81,15 @@ def _end_to_end(t: Table, e2e: Table, tables: Sequence[Table], backend: str) -> 
     if empty is not None:
         same = e2e.data["check"]["empty_lowers_to_bare"]
         t.add("empty spec indistinguishable from bare", f"{empty:.2f}%, same program: {same}", same)
+
+
+def _live_read(t: Table, lr: Table, tables: Sequence[Table], backend: str) -> None:
+    lo, hi = lr.data["ci_pct"]
+    t.add(
+        f"a live read every step within {LIVE_POINTS} pp end to end (95% interval's top)",
+        f"{lr.data['median_pct']:+.3f}% [{lo:+.3f}, {hi:+.3f}]",
+        hi <= LIVE_POINTS if backend != "cpu" else None,
+    )
 
 
 def _many_devices(t: Table, sh: Table, tables: Sequence[Table], backend: str) -> None:
@@ -142,6 +155,7 @@ JUDGES: tuple[tuple[str, Judge], ...] = (
     ("scaling_envs", _scaling),
     ("groups", _groups),
     ("end_to_end", _end_to_end),
+    ("live_read", _live_read),
     ("sharded", _many_devices),
     ("distributed", _distributed),
     ("flush", _flush),

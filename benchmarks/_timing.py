@@ -25,6 +25,7 @@ class Timing:
     min_s: float
     max_s: float
     repeats: int
+    samples: tuple[float, ...] = ()  # every timed call, in the order they ran
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,7 +70,8 @@ def measure(
             last[v.name] = v.run()
             samples[v.name].append(time.perf_counter() - t0)
     timings = {
-        name: Timing(statistics.median(s), min(s), max(s), len(s)) for name, s in samples.items()
+        name: Timing(statistics.median(s), min(s), max(s), len(s), tuple(s))
+        for name, s in samples.items()
     }
     return timings, last
 

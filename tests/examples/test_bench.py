@@ -10,6 +10,7 @@ import contextlib
 import copy
 import io
 import json
+import math
 import os
 
 import numpy as np
@@ -409,6 +410,54 @@ def test_timed_rounds_rotate_so_no_variant_always_runs_first():
     for place in range(3):
         assert sorted(r[place] for r in rounds) == ["a", "a", "b", "b", "c", "c"]
     assert {t.repeats for t in timings.values()} == {6} and last == {n: n for n in "abc"}
+
+
+@pytest.mark.parametrize("n", [3, 5, 10, 20, 21, 40])
+def test_median_interval_is_the_widest_order_statistics_with_95_percent_coverage(n):
+    from benchmarks._live import median_interval
+
+    # Reference: the coverage of (x_(k), x_(n+1-k)) for the median of any continuous
+    # distribution is 1 - 2 P(Binomial(n, 1/2) < k); the narrowest k-interval still at 95%.
+    def coverage(k):
+        return 1 - 2 * sum(math.comb(n, j) for j in range(k)) / 2**n
+
+    ks = [k for k in range(1, n // 2 + 1) if coverage(k) >= 0.95]
+    k = max(ks) if ks else 1
+    xs = list(np.random.default_rng(n).permutation(np.arange(n, dtype=float)))
+    assert median_interval(xs) == (k - 1, n - k)  # x_(j) of 0..n-1 is j - 1
+
+
+def test_live_read_pairs_the_rounds_and_counts_what_the_read_adds():
+    import jax
+    import jax.numpy as jnp
+
+    from benchmarks import _live
+    from benchmarks._timing import Variant, blocking, compile_jit
+
+    steps, x = 20, jnp.ones((64,), jnp.float32)
+
+    def scan(extra):
+        def body(c, t):
+            c = c * 0.5 + t
+            return (jnp.sort(jnp.cumsum(c)) if extra else c), None
+
+        return lambda c: jax.lax.scan(body, c, jnp.arange(steps, dtype=jnp.float32))[0]
+
+    pair, hlo = [], {}
+    for name, extra in (("base", False), ("read", True)):
+        compiled, _ = compile_jit(scan(extra), x)
+        pair.append(Variant(name, blocking(compiled, x)))
+        hlo[name] = compiled.as_text()
+    t = _live.live_read(pair, hlo, steps, rounds=5)
+    pcts = t.data["paired_pct"]
+    assert len(pcts) == 5
+    lo, hi = t.data["ci_pct"]
+    assert lo <= t.data["median_pct"] == sorted(pcts)[2] <= hi
+    (base, read) = t.rows
+    assert [base[0], read[0]] == ["base", "read"] and read[2] > base[2]  # the sort's kernels
+    assert set(t.data["busy_us_per_step"]) == {"base", "read"}
+    judged = benchmarks._targets.targets([t], "cpu")
+    assert [r[2] for r in judged.rows] == [None]  # a CPU run is left to the reader
 
 
 DOC = os.path.join(os.path.dirname(__file__), os.pardir, os.pardir, "docs", "benchmarks.md")
