@@ -156,21 +156,22 @@ def sharded(
     )
     one_bare = None
     for d in counts:
-        ro = ShardedRollout(env_name, backend, local[:d], per_device)
-        vs, coll, states = variants(ro, steps)
-        timings, _ = measure(vs, repeats)
-        bare = timings["bare"].median_s
-        one_bare = bare if one_bare is None else one_bare
-        for v in vs:
-            ms = timings[v.name].median_s / steps * 1e3
-            if v.name == "bare":
-                t.add(d, BARE, ms, None, bare / one_bare, coll[v.name], v.compile_s)
+        r = _in_own_process(env_name, backend, per_device, steps, repeats, d)
+        med = r["median_s"]
+        one_bare = med["bare"] if one_bare is None else one_bare
+        for name in ("bare", *SPECS):
+            ms = med[name] / steps * 1e3
+            if name == "bare":
+                t.add(d, BARE, ms, None, med[name] / one_bare, r["collectives"][name],
+                      r["compile_s"][name])  # fmt: skip
             else:
-                over = (timings[v.name].median_s / bare - 1) * 100
-                t.add(d, SPECS[v.name], ms, over, None, coll[v.name], v.compile_s)
-        spec, ms0, compiled = states["full"]
-        _, state = compiled(ro.state0, ms0, ro.actions)
-        f.add(d, ro.num_envs, *_flush_cost(spec, state, repeats))
+                over = (med[name] / med["bare"] - 1) * 100
+                t.add(d, SPECS[name], ms, over, None, r["collectives"][name], r["compile_s"][name])
+        f.add(d, r["envs"], *r["flush"])
+    t.notes.append(
+        "Each device count is measured in a process of its own (in one process the 2-device "
+        "bare rollout ran 1.156x one device's on 2 H200s where a fresh process ran 1.012x)."
+    )
     t.notes.append(
         "Step loop: the scanned rollout with update only, compute and flush timed apart "
         "(below). Overhead: median time of the variant over the bare rollout's, same "
@@ -194,6 +195,41 @@ def sharded(
     yield f
     if processes:
         yield distributed(per_device, steps, repeats, processes)
+
+
+def measure_count(
+    env_name: str, backend: str, per_device: int, steps: int, repeats: int, d: int
+) -> dict[str, Any]:
+    """One device count's step loops, collectives and flush, measured in this process."""
+    local = jax.local_devices()
+    if len(local) < d:
+        raise RuntimeError(f"{d} devices asked for, this process has {len(local)}")
+    ro = ShardedRollout(env_name, backend, local[:d], per_device)
+    vs, coll, states = variants(ro, steps)
+    timings, _ = measure(vs, repeats)
+    spec, ms0, compiled = states["full"]
+    _, state = compiled(ro.state0, ms0, ro.actions)
+    return {
+        "median_s": {v.name: timings[v.name].median_s for v in vs},
+        "collectives": coll,
+        "compile_s": {v.name: v.compile_s for v in vs},
+        "envs": ro.num_envs,
+        "flush": _flush_cost(spec, state, repeats),
+    }
+
+
+def _in_own_process(*args: Any) -> dict[str, Any]:
+    """`measure_count(*args)` in a fresh Python process: a process that has run one device
+    count's programs runs the next count's slower (see the table's notes)."""
+    with tempfile.TemporaryDirectory() as out:
+        path = os.path.join(out, "count.json")
+        cmd = [sys.executable, "-m", "benchmarks._sharded", path, *map(str, args)]
+        env = _with_root(dict(os.environ))
+        if jax.default_backend() == "cpu":  # the CPU devices this process was given
+            env["JAX_NUM_CPU_DEVICES"] = str(jax.local_device_count())
+        subprocess.run(cmd, env=env, check=True, timeout=1800)
+        with open(path) as fh:
+            return json.load(fh)
 
 
 def _flush_cost(spec: jm.Metrics, state: Any, repeats: int) -> list[Any]:
@@ -244,11 +280,15 @@ def distributed(per_device: int, steps: int, repeats: int, processes: int) -> Ta
     return t
 
 
-def _process_env(i: int) -> dict[str, str]:
-    env = dict(os.environ)
-    # `benchmarks` is no installed package: the worker finds it where this one was found.
+def _with_root(env: dict[str, str]) -> dict[str, str]:
+    # `benchmarks` is no installed package: a worker finds it where this one was found.
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env["PYTHONPATH"] = os.pathsep.join(filter(None, (root, env.get("PYTHONPATH"))))
+    return env
+
+
+def _process_env(i: int) -> dict[str, str]:
+    env = _with_root(dict(os.environ))
     if jax.default_backend() == "gpu":
         env["CUDA_VISIBLE_DEVICES"] = str(i)
         # This process already holds most of each GPU's memory (JAX preallocates 75%): a
@@ -264,3 +304,9 @@ def _process_env(i: int) -> dict[str, str]:
             f for f in flags if not f.startswith("--xla_force_host_platform_device_count")
         )
     return env
+
+
+if __name__ == "__main__":
+    _path, _env, _backend, *_ints = sys.argv[1:]
+    with open(_path, "w") as _fh:
+        json.dump(measure_count(_env, _backend, *map(int, _ints)), _fh)
