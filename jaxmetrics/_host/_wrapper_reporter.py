@@ -173,7 +173,7 @@ class Reporter:
             def write() -> None:
                 self.logger.emit_from_wrapper(merged, self._step(merged), when, period, self)
 
-            jax.lax.cond(jax.lax.axis_index(name) == 0, write, lambda: None)
+            jax.lax.cond(_first_device(name), write, lambda: None)
 
         # As in the emit: the conditionals have no outputs (no copy of the state a step).
         jax.lax.cond(when, report, lambda: None)
@@ -185,6 +185,16 @@ class Reporter:
         assert state.shard_counts is not None
         totals = _count.total(state.shard_counts)
         return Count(totals.hi[self._env_steps], totals.lo[self._env_steps])
+
+
+def _first_device(name: str) -> jax.Array:
+    """Whether this is the first device along `name`. Not `axis_index(name) == 0`: XLA's
+    GSPMD partitioner (JAX with Shardy off, which Brax's `ppo.train` over several GPUs
+    needs on JAX 0.11) refuses the `partition-id` it lowers to inside a conditional beside
+    the ring channel's send. A reduce-scatter of `0..n-1` hands device `i` the value `n * i`."""
+    n = axis_size(name)
+    ids = jax.lax.psum_scatter(jnp.arange(n, dtype=jnp.int32), name, tiled=True)
+    return ids[0] == 0
 
 
 def mergeable_init(metrics: Metrics, num_envs: int, axis_name: str | None) -> MetricsState:
