@@ -50,7 +50,7 @@ class Config:
     host_steps: int = 100
     host_repeats: int = 3
     e2e_variants: tuple[str, ...] = _rollout.VARIANTS
-    e2e_live_rounds: int = 21
+    e2e_live_rounds: int = 20
     scale_envs: tuple[int, ...] = (256, 1024, 4096, 16384, 65536)
     scale_terms: tuple[int, ...] = (1, 3, 10, 30, 100)
     scale_windows: tuple[int, ...] = (10, 100, 1000, 10000)
@@ -113,7 +113,7 @@ QUICK = dataclasses.replace(
     e2e_envs=32,
     e2e_steps=200,
     e2e_repeats=3,
-    e2e_live_rounds=3,
+    e2e_live_rounds=4,
     host_steps=50,
     host_repeats=2,
     scale_envs=(256, 1024, 4096),
