@@ -169,8 +169,9 @@ def sharded(
                 t.add(d, SPECS[name], ms, over, None, r["collectives"][name], r["compile_s"][name])
         f.add(d, r["envs"], *r["flush"])
     t.notes.append(
-        "Each device count is measured in a process of its own (in one process the 2-device "
-        "bare rollout ran 1.156x one device's on 2 H200s where a fresh process ran 1.012x)."
+        "Each device count is measured in a process of its own (in one process, after the "
+        "1-device programs, the 2-device bare rollout once ran 1.156x one device's on 2 "
+        "H200s; in a fresh process 1.012x)."
     )
     t.notes.append(
         "Step loop: the scanned rollout with update only, compute and flush timed apart "
@@ -219,8 +220,8 @@ def measure_count(
 
 
 def _in_own_process(*args: Any) -> dict[str, Any]:
-    """`measure_count(*args)` in a fresh Python process: a process that has run one device
-    count's programs runs the next count's slower (see the table's notes)."""
+    """`measure_count(*args)` in a fresh Python process: in a process that had run one
+    device count's programs, the next count's once ran slower (see the table's notes)."""
     with tempfile.TemporaryDirectory() as out:
         path = os.path.join(out, "count.json")
         cmd = [sys.executable, "-m", "benchmarks._sharded", path, *map(str, args)]
