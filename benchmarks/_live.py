@@ -56,6 +56,30 @@ def summarize(pcts: Sequence[float]) -> dict[str, Any]:
     }
 
 
+def _kinds(kernels: Sequence[_profile.Kernel]) -> dict[str, tuple[float, float]]:
+    """Per kind of kernel (`shape: fused ops`, which two compiles of one program share where
+    their kernel names differ), its us and launches per step, summed over the kernels."""
+    out: dict[str, tuple[float, float]] = {}
+    for k in kernels:
+        key = f"{k.shape}: {k.ops}" if k.shape or k.ops else k.name
+        us, n = out.get(key, (0.0, 0.0))
+        out[key] = (us + k.us_per_step, n + k.launches_per_step)
+    return out
+
+
+def _added(
+    base: dict[str, tuple[float, float]], live: dict[str, tuple[float, float]]
+) -> list[tuple[str, float, float]]:
+    """The kinds of kernel `live` launches more often a step than `base`, with the extra
+    device time and launches, most launches first."""
+    out = []
+    for key, (us, n) in live.items():
+        b_us, b_n = base.get(key, (0.0, 0.0))
+        if n > b_n + 1e-9:
+            out.append((key, us - b_us, n - b_n))
+    return sorted(out, key=lambda a: (-a[2], -a[1]))
+
+
 def live_read(
     pair: Sequence[Variant], hlo: dict[str, str], steps: int, rounds: int, profile: bool = True
 ) -> Table:
@@ -74,12 +98,13 @@ def live_read(
         f"Reading live statistics every step: {steps}-step scan, {rounds} paired rounds",
         ["variant", "ms/step", "kernels in step loop", "device busy us/step", "kernel us/step"],
     )
-    busy, kern = {}, {}
+    busy, kern, kinds = {}, {}, {}
     for v in pair:
         n = sum(loop_body_ops(hlo[v.name]).values())
         if profile:
             p = _profile.profile(v.run, hlo[v.name], steps)
             busy[v.name], kern[v.name] = p.busy_us_per_step, sum(k.us_per_step for k in p.kernels)
+            kinds[v.name] = _kinds(p.kernels)
         ms = timings[v.name].median_s / steps * 1e3
         t.add(v.name, ms, n, busy.get(v.name), kern.get(v.name))
     t.notes.append(
@@ -92,10 +117,15 @@ def live_read(
     if profile:
         d = busy[live.name] - busy[base.name]
         step_us = timings[base.name].median_s / steps * 1e6
+        added = _added(kinds[base.name], kinds[live.name])
         t.notes.append(
             f"Device busy time (the union of the kernels' intervals in one profiled call) "
-            f"the read adds: {d:+.2f} us a step, {d / step_us * 100:+.3f}% of the step."
+            f"the read adds: {d:+.2f} us a step, {d / step_us * 100:+.3f}% of the step. "
+            "Kernels it adds (shape: fused ops, us/step, launches/step): "
+            + ("; ".join(f"{k}, {us:.2f}, {n:g}" for k, us, n in added) or "none")
+            + "."
         )
+        s["added_kernels"] = added
     t.data = {
         **s,
         "busy_us_per_step": busy,

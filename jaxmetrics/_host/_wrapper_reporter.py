@@ -199,10 +199,14 @@ def _first_device(name: str) -> jax.Array:
 
 def mergeable_init(metrics: Metrics, num_envs: int, axis_name: str | None) -> MetricsState:
     """The fresh state of one batch whose statistics are merged over the device axis
-    `axis_name` (at a report, or a live read). With an axis it keeps each EMA's newest
-    values, so that the devices' states merge exactly, whether or not the trainer resets
-    its envs under that axis (Brax's SAC `pmap`s its reset unnamed)."""
-    if axis_name is None:
+    `axis_name` (at a report, or a live read). Where several devices may merge, it keeps
+    each EMA's newest values, so that their states merge exactly: under the axis when it
+    has more than one device, and outside it when the process has more than one device
+    (a trainer may reset its envs unnamed: Brax's SAC `pmap`s its reset without an axis).
+    One device merges nothing, and keeping that history costs a scatter every step."""
+    size = axis_size(axis_name)
+    many = size > 1 if size is not None else jax.device_count() > 1
+    if axis_name is None or not many:
         return metrics.init(num_envs)
     return _fresh.fresh(metrics._rows, num_envs, 1, ema_history=True)
 

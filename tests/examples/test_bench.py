@@ -474,6 +474,8 @@ def test_live_read_pairs_the_rounds_and_counts_what_the_read_adds():
     (base, read) = t.rows
     assert [base[0], read[0]] == ["base", "read"] and read[2] > base[2]  # the sort's kernels
     assert set(t.data["busy_us_per_step"]) == {"base", "read"}
+    # what the read adds, by kind of kernel: the sort it added is among them
+    assert any("sort" in kind for kind, _, n in t.data["added_kernels"] if n > 0)
     judged = benchmarks._targets.targets([t], "cpu")
     assert [r[2] for r in judged.rows] == [None]  # a CPU run is left to the reader
 

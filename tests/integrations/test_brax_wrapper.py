@@ -665,3 +665,24 @@ def test_quiet_upstream_hides_the_two_known_notices_inside_its_block_and_nothing
     assert "elsewhere.py:1: UserWarning" in out.stderr
     assert out.stderr.count("brax/io/mjcf.py") == 1, out.stderr
     assert "JAXopt is no longer maintained" in out.stderr
+
+
+@pytest.mark.parametrize(("devices", "history"), [(1, False), (2, True), (None, True)])
+def test_ema_history_is_kept_only_where_devices_may_merge(devices, history):
+    # A wrapper whose statistics are used inside the trainer (here read by on_reset) keeps
+    # each EMA's newest values for an exact merge over devices, a scatter on every step.
+    # Under a pmap of one device nothing merges, so it keeps none; under 2 it does; reset
+    # under no axis (as Brax's SAC pmaps its reset) it does where the process has several
+    # devices (the suite has 8).
+    metrics = jm.Metrics(terms={"return": jmb.episode_return(stats=("mean", jm.ema(0.1)))})
+    base = envs.get_environment("inverted_pendulum", backend="spring")
+    env = jmb.wrap(base, metrics, episode_length=10, on_reset=lambda read, s: s)
+    with jmb.default_promotion():
+        if devices is None:
+            state = jax.jit(env.reset)(jax.random.split(jax.random.PRNGKey(0), 4))
+        else:
+            keys = jax.random.split(jax.random.PRNGKey(0), devices * 4).reshape(devices, 4, -1)
+            reset = jax.pmap(env.reset, axis_name="i", devices=jax.devices()[:devices])
+            state = reset(keys)
+    rings = state.info["jaxmetrics"].finished.ema_rings
+    assert rings and all((r.data.size > 0) == history for r in rings)
