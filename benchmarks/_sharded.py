@@ -228,6 +228,10 @@ def _in_own_process(*args: Any) -> dict[str, Any]:
         env = _with_root(dict(os.environ))
         if jax.default_backend() == "cpu":  # the CPU devices this process was given
             env["JAX_NUM_CPU_DEVICES"] = str(jax.local_device_count())
+        else:
+            # This process may hold 75% of each GPU already (JAX preallocates at its first
+            # operation, e.g. an earlier scenario's); the worker's allocator grows instead.
+            env["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
         subprocess.run(cmd, env=env, check=True, timeout=1800)
         with open(path) as fh:
             return json.load(fh)
