@@ -44,6 +44,11 @@ def summarize(pcts: Sequence[float]) -> dict[str, Any]:
     alternating which of the two runs first, the first round the first variant), the
     order-balanced estimates (the mean of rounds 2j and 2j + 1), their median and 95%
     interval, and the mean slowdown of whichever program ran second in its round."""
+    if len(pcts) < 2:
+        raise ValueError(
+            f"the live read's estimates pair a round of each order: {len(pcts)} round(s) "
+            "timed; give --e2e-live-rounds 2 or more (an even number uses every round)"
+        )
     pair = [(pcts[j] + pcts[j + 1]) / 2 for j in range(0, len(pcts) - 1, 2)]
     order = [(pcts[j] - pcts[j + 1]) / 2 for j in range(0, len(pcts) - 1, 2)]
     lo, hi = median_interval(pair)

@@ -443,6 +443,8 @@ def test_live_read_s_estimates_cancel_the_order_the_pair_ran_in(seed):
     assert abs(s["median_pct"] - cost) < 0.03 and abs(s["order_pct"] - slow) < 0.03
     lo, hi = s["ci_pct"]
     assert lo <= s["median_pct"] <= hi and {lo, hi} <= set(pairs)
+    with pytest.raises(ValueError, match="--e2e-live-rounds 2 or more"):
+        summarize(pcts[:1])
 
 
 def test_live_read_pairs_the_rounds_and_counts_what_the_read_adds():
