@@ -328,6 +328,23 @@ def test_window_mean_and_std_of_values_far_from_zero_match_float64(seed):
     np.testing.assert_allclose(host["Episode_Metrics/x/window_std"], want.std(), rtol=1e-5)
 
 
+@pytest.mark.parametrize(
+    "values",
+    [[1.0, np.inf], [np.inf, 1.0, 2.0], [-np.inf, 3.0], [np.inf, -np.inf], [1.0, np.nan, 2.0]],
+)
+def test_window_mean_of_values_with_infinities_is_numpys(values):
+    # A window that propagates non-finite values: its mean is numpy's, inf where an inf
+    # is among finite values (deviations from a non-finite mean once made it NaN).
+    m = jm.Metrics(logged={"v": jm.Logged(stats=(jm.window(4),), nonfinite="propagate")})
+    state = m.init(0)
+    for x in values:
+        state = m.log(state, {"v": jnp.float32(x)})
+    got = m.to_host(m.compute(state))["Train/v/window_mean"]
+    with np.errstate(invalid="ignore"):  # inf - inf
+        want = np.mean(np.asarray(values, np.float64))
+    np.testing.assert_array_equal(got, want)
+
+
 def test_window_persists_across_periods():
     m = jm.Metrics(logged={"v": jm.Logged(stats=("count", jm.window(4)))})
     state = m.init(0)

@@ -412,6 +412,26 @@ def test_timed_rounds_rotate_so_no_variant_always_runs_first():
     assert {t.repeats for t in timings.values()} == {6} and last == {n: n for n in "abc"}
 
 
+def test_paired_rounds_time_no_call_that_follows_the_other_program():
+    from benchmarks._live import paired_rounds
+    from benchmarks._timing import Variant
+
+    calls = []
+
+    def run(name):
+        def f():
+            calls.append(name)
+
+        return f
+
+    pair = [Variant("a", run("a")), Variant("b", run("b"))]
+    samples, switch = paired_rounds(pair, rounds=4)
+    assert calls[:2] == ["b", "a"]  # the warm-up, ending with the first round's first
+    # Rounds a b, b a, a b, b a: the second program of each follows the other one.
+    assert calls[2:] == ["a", "b", "b", "b", "a", "a", "a", "b", "b", "b", "a", "a"]
+    assert {k: len(v) for k, v in samples.items()} == {"a": 4, "b": 4} and len(switch) == 4
+
+
 @pytest.mark.parametrize("n", [3, 5, 10, 20, 21, 40])
 def test_median_interval_is_the_widest_order_statistics_with_95_percent_coverage(n):
     from benchmarks._live import median_interval
@@ -471,6 +491,9 @@ def test_live_read_pairs_the_rounds_and_counts_what_the_read_adds():
     t = _live.live_read(pair, hlo, steps, rounds=6)
     pcts = t.data["paired_pct"]
     assert len(pcts) == 6 and len(t.data["pair_pct"]) == 3
+    # Rounds a b, b a, a b, ...: a call after the other program's is run untimed first,
+    # once a round.
+    assert len(t.data["switch_pct"]) == 6
     lo, hi = t.data["ci_pct"]
     assert lo <= t.data["median_pct"] <= hi
     (base, read) = t.rows
