@@ -345,6 +345,17 @@ def test_window_mean_of_values_with_infinities_is_numpys(values):
     np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.parametrize("order", [(0, 1, 2), (1, 0, 2), (2, 1, 0)])
+def test_window_mean_sums_as_if_exact(order):
+    # float32: 1e8 + 1 rounds to 1e8, so a plain sum of the window says 0; numpy's float64
+    # mean of the same float32 values is 1/3.
+    m = jm.Metrics(logged={"v": jm.Logged(stats=(jm.window(3),))})
+    values = np.asarray([1e8, 1.0, -1e8], np.float32)[list(order)]
+    state = m.log(m.init(0), {"v": jnp.asarray(values)})
+    got = m.to_host(m.compute(state))["Train/v/window_mean"]
+    np.testing.assert_allclose(got, values.astype(np.float64).mean(), rtol=1e-7)
+
+
 def test_window_persists_across_periods():
     m = jm.Metrics(logged={"v": jm.Logged(stats=("count", jm.window(4)))})
     state = m.init(0)
