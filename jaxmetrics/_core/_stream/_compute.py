@@ -145,11 +145,12 @@ def _window_columns(plan: StreamPlan, g: WindowGroup, w: Ring, steps: jax.Array)
 
 
 def _compensated_sum(x: jax.Array) -> jax.Array:
-    """The sums of `x[R, n]`'s rows, as if exact and then rounded once (unless they
+    """The sums of `x[R, n]`'s rows, close to the exact sums rounded once (unless they
     overflow): one reduction carrying each partial sum's rounding error beside it (Knuth's
-    TwoSum). Near 1e6 a float32 plain sum of a window of 100 put its mean up to 0.18
-    off, this up to 0.07 (300 random windows); 1e30 + 1 - 1e30 sums to 1. A non-finite sum is the plain sum's (an inf among finite values
-    stays inf; its error terms, inf - inf, are NaN)."""
+    TwoSum). Near 1e6 a float32 plain sum of a window of 100 put its mean up to 0.18 off,
+    this up to 0.07 (300 random windows); 1e30 + 1 - 1e30 sums to 1. A non-finite sum is
+    the plain sum's (an inf among finite values stays inf; its error terms, inf - inf,
+    are NaN)."""
 
     def add(a: tuple[jax.Array, jax.Array], b: tuple[jax.Array, jax.Array]):
         s = a[0] + b[0]
