@@ -1,19 +1,21 @@
 """What reading live statistics every step costs: a curriculum's `on_reset` against the same
-wrapped rollout without it, resolved below the run-to-run noise.
+wrapped rollout without it.
 
-Medians of a few repeats do not resolve 0.1 percentage points on an H200 (two identical
-programs have read 0.4% apart). So the pair is timed in many rounds, each round running
-both programs back to back, the order alternating from round to round (A B, B A, A B, ...).
-On an H200 the program that ran second in a round ran 0.3-0.8% slower than when it ran
-first (21 rounds of `ant`, 4,096 envs), more than the read costs and varying as much; in
-that order of rounds the second program of a round is the one that follows the other
-program, the first follows itself. So a run that follows the other program is not timed:
-it runs once untimed first (`paired_rounds`), and what a switch costs is recorded apart.
-Each estimate still averages two consecutive rounds of opposite orders, which cancels
-what order effect is left and slow drift. Reported: the median of those estimates with a
-distribution-free 95% confidence interval (their order statistics). Beside it, the device
-time each program's kernels take per step (one profiled call each), which does not depend
-on the wall clock at all, and the kernels each loop body launches.
+Timing: the pair is timed in many rounds, each round running both programs back to back,
+the order alternating from round to round (A B, B A, A B, ...). A program that follows the
+other one runs once untimed first (`paired_rounds`): on an H200 the program that ran second
+in a round once ran 0.3-0.8% slower, varying as much as the read costs (in that order of
+rounds the second program is the one that follows the other). Each estimate averages two
+consecutive rounds of opposite orders, which cancels what order effect is left and slow
+drift. Reported: the median of those estimates with a distribution-free 95% interval
+(their order statistics). With the untimed call, rounds of one H200 agreed within 0.03%.
+
+What that does not remove: two loads of one program ran 0.29% apart (95% CI [0.28, 0.30]),
+as steadily, and the program with the read ran 0.28% from the same first load. So the wall
+clock between separately loaded programs does not resolve 0.1 pt, and a second load of
+the program without the read is timed as a control. What the read adds is measured as the
+device's busy time per step (the union of the kernels' intervals in one profiled call),
+with the control's beside it, and the kernels each loop body launches.
 """
 
 import math
@@ -117,23 +119,46 @@ def _added(
     return sorted(out, key=lambda a: (-a[2], -a[1]))
 
 
-def live_read(
-    pair: Sequence[Variant], hlo: dict[str, str], steps: int, rounds: int, profile: bool = True
-) -> Table:
-    """`pair` = (the rollout without the read, the rollout with it), each a whole blocking
-    call of a `steps`-step scan; `hlo` their compiled texts by name."""
-    base, live = pair
+def _estimate(pair: Sequence[Variant], rounds: int) -> tuple[dict[str, Any], dict[str, list]]:
+    """`summarize` of the second of `pair` over the first in `rounds` paired rounds, with
+    the switch costs; and each program's timed calls."""
+    a, b = pair
     samples, switch = paired_rounds(pair, rounds)
-    pcts = [(b / a - 1) * 100 for a, b in zip(samples[base.name], samples[live.name], strict=True)]
-    s = summarize(pcts)
-    med, (lo, hi) = s["median_pct"], s["ci_pct"]
+    pcts = [(y / x - 1) * 100 for x, y in zip(samples[a.name], samples[b.name], strict=True)]
+    return {**summarize(pcts), "switch_pct": switch}, samples
+
+
+def _said(name: str, s: dict[str, Any]) -> str:
+    lo, hi = s["ci_pct"]
+    return f"{name} {s['median_pct']:+.3f}%, 95% CI [{lo:+.3f}, {hi:+.3f}]%"
+
+
+def live_read(
+    trio: Sequence[Variant], hlo: dict[str, str], steps: int, rounds: int, profile: bool = True
+) -> Table:
+    """`trio` = (the rollout without the read, the same program loaded again, the rollout
+    with the read), each a whole blocking call of a `steps`-step scan; `hlo` their
+    compiled texts by name. The read and the control (the second load) are each timed
+    against the first load in `rounds` paired rounds.
+
+    The control is there because on an H200 two loads of one program ran 0.29% apart,
+    steadily (6 rounds, 95% CI [0.28, 0.30]), and the program with the read ran 0.28% from
+    the same first load: between separately loaded programs the wall clock does not
+    resolve 0.1 pt, whatever the rounds. The device's busy time (the profile) is the
+    measure of what the read adds; the control's shows its resolution.
+    """
+    base, again, live = trio
+    read, samples = _estimate((base, live), rounds)
+    control, control_samples = _estimate((base, again), rounds)
+    samples[again.name] = control_samples[again.name]
     t = Table(
         "live_read",
-        f"Reading live statistics every step: {steps}-step scan, {rounds} paired rounds",
+        f"Reading live statistics every step: {steps}-step scan, {rounds} paired rounds "
+        "for the read and for a second load of the program without it",
         ["variant", "ms/step", "kernels in step loop", "device busy us/step", "kernel us/step"],
     )
     busy, kern, kinds = {}, {}, {}
-    for v in pair:
+    for v in trio:
         n = sum(loop_body_ops(hlo[v.name]).values())
         if profile:
             p = _profile.profile(v.run, hlo[v.name], steps)
@@ -142,34 +167,29 @@ def live_read(
         ms = statistics.median(samples[v.name]) / steps * 1e3
         t.add(v.name, ms, n, busy.get(v.name), kern.get(v.name))
     t.notes.append(
-        f"{live.name} over {base.name}, each estimate the mean of two consecutive rounds "
-        f"run in opposite orders: median {med:+.3f}%, 95% CI [{lo:+.3f}, {hi:+.3f}]% "
-        f"(order statistics of {len(s['pair_pct'])} estimates from {rounds} rounds); the "
-        f"second program of a round ran {s['order_pct']:+.3f}% slower than the first (mean); "
-        "ms/step: medians over the rounds. A call that followed the other program was run "
-        "untimed first"
-        + (
-            f"; it took {statistics.median(switch):+.3f}% (median of {len(switch)}) over "
-            "the timed call after it."
-            if switch
-            else "."
-        )
+        f"Over {base.name}, each estimate the mean of two consecutive rounds run in opposite "
+        f"orders: {_said(live.name, read)}; {_said(again.name, control)} (order statistics "
+        f"of {len(read['pair_pct'])} estimates from {rounds} rounds each); ms/step: medians "
+        "over the rounds. A call that followed the other program was run untimed first; "
+        f"it took {statistics.median(read['switch_pct'] + control['switch_pct']):+.3f}% "
+        "(median) over the timed call after it."
     )
     if profile:
-        d = busy[live.name] - busy[base.name]
         step_us = statistics.median(samples[base.name]) / steps * 1e6
+        d, d0 = busy[live.name] - busy[base.name], busy[again.name] - busy[base.name]
         added = _added(kinds[base.name], kinds[live.name])
         t.notes.append(
             f"Device busy time (the union of the kernels' intervals in one profiled call) "
-            f"the read adds: {d:+.2f} us a step, {d / step_us * 100:+.3f}% of the step. "
-            "Kernels it adds (shape: fused ops, us/step, launches/step): "
+            f"the read adds: {d:+.2f} us a step, {d / step_us * 100:+.3f}% of the step; the "
+            f"second load: {d0:+.2f} us ({d0 / step_us * 100:+.3f}%). Kernels the read adds "
+            "(shape: fused ops, us/step, launches/step): "
             + ("; ".join(f"{k}, {us:.2f}, {n:g}" for k, us, n in added) or "none")
             + "."
         )
-        s["added_kernels"] = added
+        read["added_kernels"] = added
     t.data = {
-        **s,
-        "switch_pct": switch,
+        **read,
+        "control": control,
         "busy_us_per_step": busy,
         "kernel_us_per_step": kern,
     }

@@ -21,8 +21,9 @@ E2E_POINTS = 0.3
 """The end-to-end bound: percentage points of overhead above the floor's, same run."""
 
 LIVE_POINTS = 0.1
-"""The live-read bound: percentage points a curriculum's every-step read adds end to end,
-judged on the upper end of the paired rounds' 95% interval (`_live`)."""
+"""The live-read bound: percentage points of the rollout's step that a curriculum's
+every-step read adds to the device's busy time (`_live`). Its wall clock is shown beside,
+not judged: two loads of one program ran 0.29% apart on an H200, steadily."""
 
 DEVICES_POINTS = 0.5
 """The many-device bound: percentage points of overhead above one device's, same run."""
@@ -84,12 +85,33 @@ def _end_to_end(t: Table, e2e: Table, tables: Sequence[Table], backend: str) -> 
 
 
 def _live_read(t: Table, lr: Table, tables: Sequence[Table], backend: str) -> None:
-    lo, hi = lr.data["ci_pct"]
-    t.add(
-        f"a live read every step within {LIVE_POINTS} pp end to end (95% interval's top)",
-        f"{lr.data['median_pct']:+.3f}% [{lo:+.3f}, {hi:+.3f}]",
-        hi <= LIVE_POINTS if backend != "cpu" else None,
-    )
+    col = {c: k for k, c in enumerate(lr.columns)}
+    rows = {r[0]: r for r in lr.rows}
+    base, live = rows["live_base"], rows["live"]
+    busy = col["device busy us/step"]
+    if base[busy] is not None:
+        step = base[col["ms/step"]] * 1e3
+        d = (live[busy] - base[busy]) / step * 100
+        said = f"{d:+.3f}% of the step"
+        again = rows.get(_rollout.LIVE_AGAIN)
+        if again is not None and again[busy] is not None:
+            d0 = (again[busy] - base[busy]) / step * 100
+            said += f" (a second load of the program without it: {d0:+.3f}%)"
+        t.add(
+            f"a live read every step adds within {LIVE_POINTS} pp of device time end to end",
+            said,
+            d <= LIVE_POINTS if backend != "cpu" else None,
+        )
+    said = _said(lr.data)
+    control = lr.data.get("control")
+    if control is not None:
+        said += f" vs {_said(control)} for a second load of the program without it"
+    t.add("a live read every step, wall clock end to end (95% interval)", said, None)
+
+
+def _said(s: dict) -> str:
+    lo, hi = s["ci_pct"]
+    return f"{s['median_pct']:+.3f}% [{lo:+.3f}, {hi:+.3f}]"
 
 
 def _many_devices(t: Table, sh: Table, tables: Sequence[Table], backend: str) -> None:

@@ -18,6 +18,7 @@ import pytest
 
 import benchmarks
 from benchmarks import _brax_results, _isolated, _profile, _render
+from benchmarks._report import Table
 
 NUM_ENVS, STEPS = 64, 50
 ROLLOUT_STEPS = 30
@@ -483,26 +484,40 @@ def test_live_read_pairs_the_rounds_and_counts_what_the_read_adds():
 
         return lambda c: jax.lax.scan(body, c, jnp.arange(steps, dtype=jnp.float32))[0]
 
-    pair, hlo = [], {}
-    for name, extra in (("base", False), ("read", True)):
+    trio, hlo = [], {}
+    for name, extra in (("live_base", False), ("again", False), ("live", True)):
         compiled, _ = compile_jit(scan(extra), x)
-        pair.append(Variant(name, blocking(compiled, x)))
+        trio.append(Variant(name, blocking(compiled, x)))
         hlo[name] = compiled.as_text()
-    t = _live.live_read(pair, hlo, steps, rounds=6)
-    pcts = t.data["paired_pct"]
-    assert len(pcts) == 6 and len(t.data["pair_pct"]) == 3
-    # Rounds a b, b a, a b, ...: a call after the other program's is run untimed first,
-    # once a round.
-    assert len(t.data["switch_pct"]) == 6
-    lo, hi = t.data["ci_pct"]
-    assert lo <= t.data["median_pct"] <= hi
-    (base, read) = t.rows
-    assert [base[0], read[0]] == ["base", "read"] and read[2] > base[2]  # the sort's kernels
-    assert set(t.data["busy_us_per_step"]) == {"base", "read"}
+    t = _live.live_read(trio, hlo, steps, rounds=6)
+    for s in (t.data, t.data["control"]):  # the read's estimates, the second load's
+        assert len(s["paired_pct"]) == 6 and len(s["pair_pct"]) == 3
+        lo, hi = s["ci_pct"]
+        assert lo <= s["median_pct"] <= hi
+        # Rounds a b, b a, a b, ...: a call after the other program's is run untimed
+        # first, once a round.
+        assert len(s["switch_pct"]) == 6
+    (base, again, read) = t.rows
+    assert [base[0], again[0], read[0]] == ["live_base", "again", "live"]
+    assert read[2] > base[2] == again[2]  # the sort's kernels; the same program twice
+    assert set(t.data["busy_us_per_step"]) == {"live_base", "again", "live"}
     # what the read adds, by kind of kernel: the sort it added is among them
     assert any("sort" in kind for kind, _, n in t.data["added_kernels"] if n > 0)
     judged = benchmarks._targets.targets([t], "cpu")
-    assert [r[2] for r in judged.rows] == [None]  # a CPU run is left to the reader
+    assert [r[2] for r in judged.rows] == [None, None]  # a CPU run is left to the reader
+    assert "second load" in judged.rows[1][1]
+
+
+@pytest.mark.parametrize("busy_us, met", [(2.0, True), (3.5, False)])
+def test_the_live_read_is_judged_on_the_device_time_it_adds(busy_us, met):
+    # 0.1 pp of a 3 ms step is 3 us of device time; the wall clock is shown, not judged.
+    t = Table("live_read", "", ["variant", "ms/step", "device busy us/step"])
+    t.add("live_base", 3.0, 2900.0)
+    t.add("live", 3.0, 2900.0 + busy_us)
+    t.data = {"median_pct": 0.5, "ci_pct": [0.4, 0.6]}
+    rows = benchmarks._targets.targets([t], "gpu").rows
+    assert rows[0][2] is met and rows[0][1] == f"{busy_us / 3e3 * 100:+.3f}% of the step"
+    assert rows[1][2] is None and rows[1][1] == "+0.500% [+0.400, +0.600]"
 
 
 DOC = os.path.join(os.path.dirname(__file__), os.pardir, os.pardir, "docs", "benchmarks.md")
