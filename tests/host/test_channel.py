@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import jaxmetrics as jm
-from jaxmetrics._host import _channel, _ring
+from jaxmetrics._host import _channel, _ring, _ring_send
 
 SEEDS, STEPS, PERIOD, NUM_ENVS = 2, 24, 4, 3
 
@@ -95,12 +95,12 @@ def test_the_ring_self_test_runs_from_inside_a_trace_and_passes(monkeypatch):
 
 def test_a_ring_whose_jax_internals_are_gone_is_refused_with_the_reason(monkeypatch):
     monkeypatch.setattr(_channel, "_SELF_TESTS", {})
-    monkeypatch.setattr(_channel, "_SEND", [])
+    monkeypatch.setattr(_ring_send, "_SEND", [])
 
     def gone():
         raise ImportError("cannot import name 'buffer_callback' from 'jax._src'")
 
-    monkeypatch.setattr(_channel, "_private_jax", gone)
+    monkeypatch.setattr(_ring_send, "private_jax", gone)
     logger = jm.Logger(_spec(), [jm.MemoryWriter()], report_channel="ring")
     with pytest.raises(RuntimeError, match=r"ring' does not work with JAX .*buffer_callback"):
         jax.jit(lambda s: logger.emit(s, 0, True))(logger.metrics.init(0))
@@ -111,8 +111,8 @@ def test_a_ring_that_garbles_reports_fails_its_self_test(monkeypatch):
     """A round trip that delivers other words (here the host's writer flips them) is a
     failure, not a pass."""
     monkeypatch.setattr(_channel, "_SELF_TESTS", {})
-    write = _channel._Site.write_host
-    monkeypatch.setattr(_channel._Site, "write_host", lambda site, w: write(site, ~w))
+    write = _ring_send.Site.write_host
+    monkeypatch.setattr(_ring_send.Site, "write_host", lambda site, w: write(site, ~w))
     assert "came back as" in _channel.self_test()
 
 
