@@ -282,7 +282,7 @@ def end_to_end(
     host_steps: int,
     host_repeats: int,
     variants: tuple[str, ...] = VARIANTS,
-    live_rounds: int = 20,
+    live_rounds: int = 8,
 ) -> list[Table]:
     """Scenarios 2, 3, 6 and 7 on one rollout set-up, in one process.
 
