@@ -51,7 +51,7 @@ class Config:
     host_repeats: int = 3
     e2e_variants: tuple[str, ...] = _rollout.VARIANTS
     # Two estimates of 8 rounds each: on an H200 rounds agreed within 0.03%, and the whole
-    # e2e scenario then fits one 10-minute device call (16 rounds of one estimate: 8.9 min).
+    # e2e scenario should then fit one 10-minute device call (16 rounds of one: 8.9 min).
     e2e_live_rounds: int = 8
     scale_envs: tuple[int, ...] = (256, 1024, 4096, 16384, 65536)
     scale_terms: tuple[int, ...] = (1, 3, 10, 30, 100)
