@@ -128,9 +128,10 @@ def _estimate(pair: Sequence[Variant], rounds: int) -> tuple[dict[str, Any], dic
     return {**summarize(pcts), "switch_pct": switch}, samples
 
 
-def _said(name: str, s: dict[str, Any]) -> str:
+def interval(s: dict[str, Any]) -> str:
+    """An estimate of `summarize` as its median and 95% interval: `+0.185% [+0.138, +0.231]`."""
     lo, hi = s["ci_pct"]
-    return f"{name} {s['median_pct']:+.3f}%, 95% CI [{lo:+.3f}, {hi:+.3f}]%"
+    return f"{s['median_pct']:+.3f}% [{lo:+.3f}, {hi:+.3f}]"
 
 
 def live_read(
@@ -168,8 +169,9 @@ def live_read(
         t.add(v.name, ms, n, busy.get(v.name), kern.get(v.name))
     t.notes.append(
         f"Over {base.name}, each estimate the mean of two consecutive rounds run in opposite "
-        f"orders: {_said(live.name, read)}; {_said(again.name, control)} (order statistics "
-        f"of {len(read['pair_pct'])} estimates from {rounds} rounds each); ms/step: medians "
+        f"orders: {live.name} {interval(read)}, {again.name} {interval(control)} (medians, "
+        f"95% intervals from the order statistics of {len(read['pair_pct'])} estimates from "
+        f"{rounds} rounds each); ms/step: medians "
         "over the rounds. A call that followed the other program was run untimed first; "
         f"it took {statistics.median(read['switch_pct'] + control['switch_pct']):+.3f}% "
         "(median) over the timed call after it."

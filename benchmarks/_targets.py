@@ -8,7 +8,7 @@ H100, `h100_e2e.json` the first).
 
 from collections.abc import Callable, Sequence
 
-from . import _rollout, _sharded
+from . import _live, _rollout, _sharded
 from ._report import Table
 
 NOTE = "met '-': judged by reading the numbers (noise-limited), not a threshold."
@@ -102,16 +102,11 @@ def _live_read(t: Table, lr: Table, tables: Sequence[Table], backend: str) -> No
             said,
             d <= LIVE_POINTS if backend != "cpu" else None,
         )
-    said = _said(lr.data)
+    said = _live.interval(lr.data)
     control = lr.data.get("control")
     if control is not None:
-        said += f" vs {_said(control)} for a second load of the program without it"
+        said += f" vs {_live.interval(control)} for a second load of the program without it"
     t.add("a live read every step, wall clock end to end (95% interval)", said, None)
-
-
-def _said(s: dict) -> str:
-    lo, hi = s["ci_pct"]
-    return f"{s['median_pct']:+.3f}% [{lo:+.3f}, {hi:+.3f}]"
 
 
 def _many_devices(t: Table, sh: Table, tables: Sequence[Table], backend: str) -> None:
