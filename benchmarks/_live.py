@@ -140,13 +140,7 @@ def live_read(
     """`trio` = (the rollout without the read, the same program loaded again, the rollout
     with the read), each a whole blocking call of a `steps`-step scan; `hlo` their
     compiled texts by name. The read and the control (the second load) are each timed
-    against the first load in `rounds` paired rounds.
-
-    The control is there because on an H200 two loads of one program ran 0.29% apart,
-    steadily (6 rounds, 95% CI [0.28, 0.30]), and the program with the read ran 0.28% from
-    the same first load: between separately loaded programs the wall clock does not
-    resolve 0.1 pt, whatever the rounds. The device's busy time (the profile) is the
-    measure of what the read adds; the control's shows its resolution.
+    against the first load in `rounds` paired rounds; why a control, the module says.
     """
     base, again, live = trio
     read, samples = _estimate((base, live), rounds)
